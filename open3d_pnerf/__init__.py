@@ -1,0 +1,21 @@
+"""open3d_pnerf: probabilistic neural scene representations (PNeRF) from RGB-D, for Open3D.
+
+Public API::
+
+    seq = open3d_pnerf.load_sequence("path/to/tum_or_7scenes_or_redwood_folder")
+    traj = open3d_pnerf.track(seq)                      # poses + 6x6 covariances
+    targets = open3d_pnerf.depth_targets(seq, traj)     # per-pixel depth mean and sigma
+    mesh = open3d_pnerf.tsdf_fusion(seq, traj.poses)    # the Open3D TSDF baseline
+"""
+
+from ._deps import require
+
+require("open3d")
+require("torch")
+
+from . import errors  # noqa: E402
+from .data import RGBDSequence, load_sample, load_sequence  # noqa: E402
+
+__version__ = "0.1.0"
+
+__all__ = ["RGBDSequence", "errors", "load_sample", "load_sequence"]

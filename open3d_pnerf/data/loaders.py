@@ -1,0 +1,320 @@
+"""Readers for RGB-D dataset folders: TUM RGB-D, 7-Scenes, Open3D/Redwood.
+
+`load_sequence(path)` detects the layout; each reader returns an :class:`RGBDSequence`
+whose frames load lazily from the files.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial.transform import Rotation, Slerp
+
+from ..errors import DatasetError, InputError
+from .sequence import RGBDSequence, check_intrinsic, file_reader
+
+# TUM calibration of the (registered) colour camera, per Kinect; distortion is ignored.
+TUM_INTRINSICS = {
+    "freiburg1": (517.3, 516.5, 318.6, 255.3),
+    "freiburg2": (520.9, 521.0, 325.1, 249.7),
+    "freiburg3": (535.4, 539.2, 320.1, 247.6),
+}
+PRIMESENSE_DEFAULT = (525.0, 525.0, 319.5, 239.5)
+TUM_MAX_DT = 0.02  # seconds, as TUM's associate.py
+MEDIAN_DEPTH_LIMIT = 20.0  # metres: an indoor RGB-D median beyond this means a wrong depth scale
+
+
+def pinhole(width: int, height: int, fx: float, fy: float, cx: float, cy: float):
+    """Shorthand for ``o3d.camera.PinholeCameraIntrinsic``."""
+    return o3d.camera.PinholeCameraIntrinsic(int(width), int(height), fx, fy, cx, cy)
+
+
+def load_sequence(
+    path,
+    intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None,
+    depth_scale: float | None = None,
+    depth_trunc: float = 0.0,
+    stride: int = 1,
+    max_frames: int | None = None,
+    image_scale: float = 1.0,
+    color_intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None,
+) -> RGBDSequence:
+    """Read an RGB-D dataset folder, detecting its layout.
+
+    Layouts: TUM RGB-D (``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``; depth
+    scale 5000), 7-Scenes (``frame-XXXXXX.{color.png|color.jpg,depth.png,pose.txt}``,
+    ``camera-intrinsics.txt``; depth scale 1000), Open3D/Redwood (``color|rgb|image/`` and
+    ``depth/``, optional intrinsic ``*.json`` and ``*.log`` trajectory; depth scale 1000).
+
+    intrinsic / color_intrinsic / depth_scale override what the folder says. depth_trunc
+    (m, 0 = none) drops farther depth. stride keeps every stride-th frame, max_frames caps
+    the count after striding. image_scale in (0, 1] resizes frames on load.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"dataset folder not found: {path}")
+    if not path.is_dir():
+        raise DatasetError(f"dataset path must be a folder, got a file: {path}")
+    if not isinstance(stride, int) or stride < 1:
+        raise InputError(f"stride must be an integer >= 1, got {stride!r}")
+    if max_frames is not None and max_frames < 1:
+        raise InputError(f"max_frames must be >= 1 or None, got {max_frames!r}")
+    if depth_scale is not None and not depth_scale > 0:
+        raise InputError(f"depth_scale must be > 0 (raw units per metre), got {depth_scale!r}")
+    if intrinsic is not None:
+        check_intrinsic(intrinsic)
+
+    if (path / "rgb.txt").is_file() and (path / "depth.txt").is_file():
+        readers, ts, poses, intr, cintr, name = _tum(path, intrinsic, depth_scale)
+    elif list(path.glob("frame-*.depth.png")):
+        readers, ts, poses, intr, cintr, name = _seven_scenes(path, intrinsic, depth_scale)
+    elif (path / "depth").is_dir():
+        readers, ts, poses, intr, cintr, name = _redwood(path, intrinsic, depth_scale)
+    else:
+        raise DatasetError(
+            f"{path}: not a known RGB-D layout. Expected TUM (rgb.txt + depth.txt), 7-Scenes "
+            "(frame-XXXXXX.color.png/.depth.png) or Open3D/Redwood (color/ + depth/) folders"
+        )
+    keep = np.arange(0, len(readers), stride)[:max_frames]
+    seq = RGBDSequence(
+        [readers[i] for i in keep],
+        intr,
+        ts[keep],
+        None if poses is None else poses[keep],
+        depth_trunc,
+        color_intrinsic or cintr,
+        name,
+        image_scale,
+    )
+    check_first_frame(seq)
+    return seq
+
+
+def check_first_frame(seq: RGBDSequence) -> None:
+    """Load frame 0 to fail early on mismatched sizes, empty depth or a wrong depth scale."""
+    depth = seq[0].depth
+    valid = depth[depth > 0]
+    if valid.size == 0:
+        raise DatasetError(f"{seq.name}: frame 0 has no valid depth (all zero)")
+    median = float(np.median(valid))
+    if median > MEDIAN_DEPTH_LIMIT or median < 0.05:
+        raise DatasetError(
+            f"{seq.name}: median depth of frame 0 is {median:.3g} m, implausible for an RGB-D "
+            "camera; the depth scale is probably wrong (TUM uses 5000, 7-Scenes/Redwood 1000 "
+            "raw units per metre): pass depth_scale="
+        )
+
+
+# -- TUM RGB-D ------------------------------------------------------------------------------
+def _read_list(path: Path) -> list[list[str]]:
+    rows = []
+    for line_no, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        rows.append(line.split())
+    if not rows:
+        raise DatasetError(f"{path} lists no entries")
+    return rows
+
+
+def _timestamped_files(path: Path) -> tuple[np.ndarray, list[Path]]:
+    rows = _read_list(path)
+    try:
+        stamps = np.array([float(r[0]) for r in rows])
+    except ValueError as exc:
+        raise DatasetError(f"{path}: expected 'timestamp filename' lines ({exc})") from None
+    return stamps, [path.parent / r[1] for r in rows]
+
+
+def associate(a: np.ndarray, b: np.ndarray, max_dt: float) -> list[tuple[int, int]]:
+    """One-to-one nearest-timestamp matches (i, j) with |a_i - b_j| < max_dt, as TUM's tool."""
+    diff = np.abs(a[:, None] - b[None, :])
+    cand = np.argwhere(diff < max_dt)
+    order = np.argsort(diff[cand[:, 0], cand[:, 1]], kind="stable")
+    used_a, used_b, pairs = set(), set(), []
+    for i, j in cand[order]:
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((int(i), int(j)))
+    return sorted(pairs)
+
+
+def _tum(path: Path, intrinsic, depth_scale):
+    rgb_t, rgb_f = _timestamped_files(path / "rgb.txt")
+    dep_t, dep_f = _timestamped_files(path / "depth.txt")
+    pairs = associate(rgb_t, dep_t, TUM_MAX_DT)
+    if not pairs:
+        raise DatasetError(
+            f"{path}: no rgb/depth timestamps within {TUM_MAX_DT} s of each other; cannot "
+            "associate colour with depth"
+        )
+    scale = depth_scale or 5000.0
+    readers = [file_reader(rgb_f[i], dep_f[j], scale) for i, j in pairs]
+    stamps = np.array([rgb_t[i] for i, _ in pairs])
+    poses = None
+    gt = path / "groundtruth.txt"
+    if gt.is_file():
+        poses = _interpolate_tum_groundtruth(gt, stamps)
+    if intrinsic is None:
+        known = [k for k in TUM_INTRINSICS if k in path.name]
+        params = TUM_INTRINSICS[known[0]] if known else PRIMESENSE_DEFAULT
+        if not known:
+            warnings.warn(f"{path}: unknown TUM camera, using the default 525/319.5/239.5 intrinsic")
+        intrinsic = pinhole(640, 480, *params)
+    return readers, stamps, poses, intrinsic, None, path.name
+
+
+def _interpolate_tum_groundtruth(path: Path, stamps: np.ndarray) -> np.ndarray | None:
+    rows = np.array([[float(x) for x in r] for r in _read_list(path)])
+    if rows.shape[1] != 8:
+        raise DatasetError(f"{path}: expected 'timestamp tx ty tz qx qy qz qw' lines")
+    t = rows[:, 0]
+    inside = (stamps >= t[0]) & (stamps <= t[-1])
+    if not inside.all():
+        warnings.warn(f"{path}: ground truth does not cover every frame; gt_poses left out")
+        return None
+    rot = Slerp(t, Rotation.from_quat(rows[:, 4:8]))(stamps)
+    poses = np.tile(np.eye(4), (len(stamps), 1, 1))
+    poses[:, :3, :3] = rot.as_matrix()
+    for k in range(3):
+        poses[:, k, 3] = np.interp(stamps, t, rows[:, 1 + k])
+    return poses
+
+
+# -- 7-Scenes -------------------------------------------------------------------------------
+def _seven_scenes(path: Path, intrinsic, depth_scale):
+    depth_files = sorted(path.glob("frame-*.depth.png"))
+    readers, poses = [], []
+    scale = depth_scale or 1000.0
+    for d in depth_files:
+        stem = d.name[: -len(".depth.png")]
+        color = next((c for c in (path / f"{stem}.color.png", path / f"{stem}.color.jpg") if c.is_file()), None)
+        if color is None:
+            raise DatasetError(f"{path}: {stem}.color.png/.jpg missing for {d.name}")
+        readers.append(_seven_scenes_reader(color, d, scale))
+        pose_file = path / f"{stem}.pose.txt"
+        poses.append(_read_matrix(pose_file, (4, 4)) if pose_file.is_file() else None)
+    gt = np.stack(poses) if all(p is not None for p in poses) else None
+    intr_file = path / "camera-intrinsics.txt"
+    if intrinsic is None:
+        if intr_file.is_file():
+            k = _read_matrix(intr_file, (3, 3))
+            intrinsic = pinhole(640, 480, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+        else:
+            intrinsic = pinhole(640, 480, 585.0, 585.0, 320.0, 240.0)
+    # 7-Scenes colour is not registered to depth: measured colour = 0.905 x depth image,
+    # shifted -7 px in x (shared/data/7scenes_redkitchen/SOURCE.md).
+    fx, fy = intrinsic.get_focal_length()
+    cx, cy = intrinsic.get_principal_point()
+    color_intr = pinhole(intrinsic.width, intrinsic.height, fx * 0.905, fy * 0.905, cx - 7.0, cy)
+    stamps = np.array([float(re.sub(r"\D", "", d.name) or i) for i, d in enumerate(depth_files)])
+    return readers, stamps, gt, intrinsic, color_intr, path.name
+
+
+def _seven_scenes_reader(color: Path, depth: Path, scale: float):
+    read = file_reader(color, depth, scale)
+
+    def reader():
+        c, d = read()
+        d[d >= 65535 / scale - 1e-6] = 0  # raw 7-Scenes marks invalid depth with 65535
+        return c, d
+
+    return reader
+
+
+def _read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    try:
+        m = np.loadtxt(path, dtype=np.float64)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: not a {shape[0]}x{shape[1]} matrix of numbers ({exc})") from None
+    if m.shape != shape:
+        raise DatasetError(f"{path}: expected a {shape[0]}x{shape[1]} matrix, got shape {m.shape}")
+    return m
+
+
+# -- Open3D / Redwood reconstruction-system folders ----------------------------------------
+IMAGE_EXT = {".png", ".jpg", ".jpeg"}
+
+
+def _image_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXT)
+
+
+def _redwood(path: Path, intrinsic, depth_scale):
+    color_dir = next((path / n for n in ("color", "rgb", "image") if (path / n).is_dir()), None)
+    if color_dir is None:
+        raise DatasetError(f"{path}: has depth/ but no color/, rgb/ or image/ folder")
+    colors, depths = _image_files(color_dir), _image_files(path / "depth")
+    if len(colors) != len(depths) or not depths:
+        raise DatasetError(
+            f"{path}: {len(colors)} colour images in {color_dir.name}/ but {len(depths)} in depth/"
+        )
+    json_intrinsic, json_scale = _find_intrinsic_json(path)
+    scale = depth_scale or json_scale or 1000.0
+    readers = [file_reader(c, d, scale) for c, d in zip(colors, depths)]
+    intrinsic = intrinsic or json_intrinsic
+    logs = sorted(path.glob("*.log"))
+    poses = read_log_trajectory(logs[0]) if logs else None
+    if poses is not None and len(poses) != len(readers):
+        warnings.warn(f"{logs[0]}: {len(poses)} poses for {len(readers)} frames; gt_poses left out")
+        poses = None
+    return readers, np.arange(len(readers), dtype=float), poses, intrinsic, None, path.name
+
+
+def _find_intrinsic_json(path: Path):
+    """(intrinsic, depth_scale or None) from the folder's Open3D intrinsic JSON."""
+    for f in sorted(path.glob("*.json")):
+        try:
+            data = json.loads(f.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            continue
+        if isinstance(data, dict) and "intrinsic_matrix" in data:
+            k = np.asarray(data["intrinsic_matrix"], dtype=float)
+            if k.size != 9 or "width" not in data or "height" not in data:
+                raise DatasetError(f"{f}: expected width, height and a 9-value intrinsic_matrix")
+            k = k.reshape(3, 3).T  # Open3D stores it column-major
+            intr = pinhole(data["width"], data["height"], k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+            return intr, data.get("depth_scale")
+    warnings.warn(f"{path}: no intrinsic JSON found, using the PrimeSense default 525/319.5/239.5")
+    return pinhole(640, 480, *PRIMESENSE_DEFAULT), None
+
+
+def read_log_trajectory(path) -> np.ndarray:
+    """Read a Redwood/Open3D ``.log`` trajectory: per pose a 'i j n' line and a 4x4 matrix."""
+    path = Path(path)
+    rows = [line.split() for line in path.read_text().splitlines() if line.strip()]
+    if len(rows) % 5:
+        raise DatasetError(f"{path}: a .log trajectory has 5 lines per pose, got {len(rows)} lines")
+    try:
+        mats = [np.array(rows[i + 1 : i + 5], dtype=np.float64) for i in range(0, len(rows), 5)]
+    except ValueError as exc:
+        raise DatasetError(f"{path}: malformed .log trajectory ({exc})") from None
+    if any(m.shape != (4, 4) for m in mats):
+        raise DatasetError(f"{path}: each pose in a .log trajectory must be a 4x4 matrix")
+    return np.stack(mats)
+
+
+def write_log_trajectory(path, poses: np.ndarray) -> None:
+    """Write (N, 4, 4) camera-to-world poses as a Redwood/Open3D ``.log`` trajectory."""
+    lines = []
+    for i, pose in enumerate(np.asarray(poses)):
+        lines.append(f"{i} {i} {i + 1}")
+        lines += [" ".join(f"{v:.10f}" for v in row) for row in pose]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def write_tum_trajectory(path, poses: np.ndarray, timestamps: np.ndarray) -> None:
+    """Write (N, 4, 4) camera-to-world poses as TUM 'timestamp tx ty tz qx qy qz qw' lines."""
+    quats = Rotation.from_matrix(np.asarray(poses)[:, :3, :3]).as_quat()
+    lines = [
+        f"{t:.6f} " + " ".join(f"{v:.7f}" for v in (*p[:3, 3], *q))
+        for t, p, q in zip(timestamps, poses, quats)
+    ]
+    Path(path).write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")

@@ -1,0 +1,327 @@
+"""The RGB-D sequence model: lazily loaded frames, one depth intrinsic, optional GT poses.
+
+Inside the library depth is z-depth in metres (float32, 0 = invalid) and colour is uint8
+(H, W, 3) RGB. Poses are camera-to-world 4x4 float64 in metres, OpenCV camera axes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from ..errors import DatasetError, InputError, PoseError
+
+FrameReader = Callable[[], tuple[np.ndarray, np.ndarray]]
+"""Zero-argument callable returning (colour uint8 HxWx3, depth float32 HxW metres)."""
+
+
+@dataclasses.dataclass
+class Frame:
+    """One RGB-D frame: colour (H, W, 3) uint8 RGB, depth (H, W) float32 metres, 0 = invalid."""
+
+    color: np.ndarray
+    depth: np.ndarray
+    timestamp: float
+    index: int
+
+
+def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    """Read an image file with OpenCV, raising DatasetError naming the file on failure."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"image file not found: {path}")
+    image = cv2.imread(str(path), flags)
+    if image is None or image.size == 0:
+        raise DatasetError(f"cannot decode image (unreadable or truncated): {path}")
+    return image
+
+
+def file_reader(color_path: Path, depth_path: Path, depth_scale: float) -> FrameReader:
+    """A reader for a colour image file and a 16-bit depth PNG (value / depth_scale = m)."""
+
+    def read() -> tuple[np.ndarray, np.ndarray]:
+        color = read_image(color_path, cv2.IMREAD_COLOR)
+        color = cv2.cvtColor(color, cv2.COLOR_BGR2RGB)
+        raw = read_image(depth_path, cv2.IMREAD_UNCHANGED)
+        if raw.ndim != 2 or raw.dtype not in (np.uint16, np.uint8, np.float32):
+            raise DatasetError(
+                f"depth image {depth_path} must be single-channel 16-bit (or float32), "
+                f"got dtype {raw.dtype} with shape {raw.shape}"
+            )
+        depth = raw.astype(np.float32) / np.float32(depth_scale)
+        return color, depth
+
+    return read
+
+
+def check_intrinsic(intrinsic, what: str = "intrinsic") -> o3d.camera.PinholeCameraIntrinsic:
+    """Validate a PinholeCameraIntrinsic (or a 3x3 matrix + size tuple is not accepted)."""
+    if not isinstance(intrinsic, o3d.camera.PinholeCameraIntrinsic):
+        raise InputError(
+            f"{what} must be an open3d.camera.PinholeCameraIntrinsic, got {type(intrinsic).__name__}"
+        )
+    fx, fy = intrinsic.get_focal_length()
+    if intrinsic.width <= 0 or intrinsic.height <= 0 or not (fx > 0 and fy > 0):
+        raise InputError(
+            f"{what} must have positive width, height and focal lengths, got "
+            f"{intrinsic.width}x{intrinsic.height}, fx={fx}, fy={fy}"
+        )
+    return intrinsic
+
+
+def check_poses(poses, n: int | None = None, what: str = "poses") -> np.ndarray:
+    """Return poses as (N, 4, 4) float64 after checking they are finite rigid transforms."""
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise PoseError(f"{what} must have shape (N, 4, 4), got {arr.shape}")
+    if n is not None and arr.shape[0] != n:
+        raise PoseError(f"{what} has {arr.shape[0]} poses for {n} frames")
+    bad = ~np.isfinite(arr).all(axis=(1, 2))
+    if bad.any():
+        raise PoseError(f"{what} contain NaN/inf at frames {np.flatnonzero(bad)[:10].tolist()}")
+    rot = arr[:, :3, :3]
+    ortho = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(rot)
+    bottom = np.abs(arr[:, 3] - [0, 0, 0, 1]).max(axis=1)
+    bad = (ortho > 1e-3) | (np.abs(det - 1) > 1e-3) | (bottom > 1e-9)
+    if bad.any():
+        raise PoseError(
+            f"{what} are not rigid transforms (rotation not orthonormal, det != 1 or last row "
+            f"not [0,0,0,1]) at frames {np.flatnonzero(bad)[:10].tolist()}"
+        )
+    return arr
+
+
+def scale_intrinsic(intrinsic: o3d.camera.PinholeCameraIntrinsic, scale: float):
+    """Intrinsic of the image resized by `scale` (pixel centres at integer coordinates)."""
+    width, height = round(intrinsic.width * scale), round(intrinsic.height * scale)
+    sx, sy = width / intrinsic.width, height / intrinsic.height
+    fx, fy = intrinsic.get_focal_length()
+    cx, cy = intrinsic.get_principal_point()
+    return o3d.camera.PinholeCameraIntrinsic(
+        width, height, fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5
+    )
+
+
+class RGBDSequence:
+    """A lazily loaded RGB-D sequence.
+
+    Frames are read from their source only when indexed, so a 2,000-frame sequence never
+    sits in memory at once. ``seq[i]`` gives a :class:`Frame`; ``seq.intrinsic`` is the
+    depth camera's ``o3d.camera.PinholeCameraIntrinsic`` (colour is registered to it unless
+    ``color_intrinsic`` says otherwise); ``seq.gt_poses`` is (N, 4, 4) camera-to-world or None.
+    """
+
+    def __init__(
+        self,
+        readers: Sequence[FrameReader],
+        intrinsic: o3d.camera.PinholeCameraIntrinsic,
+        timestamps: Sequence[float] | None = None,
+        gt_poses: np.ndarray | None = None,
+        depth_trunc: float = 0.0,
+        color_intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None,
+        name: str = "sequence",
+        image_scale: float = 1.0,
+    ):
+        self._readers = list(readers)
+        if not self._readers:
+            raise InputError(f"{name}: the sequence has no frames")
+        self._base_intrinsic = check_intrinsic(intrinsic)
+        self._base_color_intrinsic = (
+            check_intrinsic(color_intrinsic, "color_intrinsic") if color_intrinsic else None
+        )
+        n = len(self._readers)
+        self.timestamps = (
+            np.arange(n, dtype=np.float64)
+            if timestamps is None
+            else np.asarray(timestamps, dtype=np.float64)
+        )
+        if self.timestamps.shape != (n,):
+            raise InputError(f"{name}: {len(self.timestamps)} timestamps for {n} frames")
+        self.gt_poses = None if gt_poses is None else check_poses(gt_poses, n, f"{name}: gt_poses")
+        if depth_trunc < 0:
+            raise InputError(f"depth_trunc must be >= 0 metres (0 = no truncation), got {depth_trunc}")
+        if not (0 < image_scale <= 1):
+            raise InputError(f"image_scale must be in (0, 1], got {image_scale}")
+        self.depth_trunc = float(depth_trunc)
+        self.image_scale = float(image_scale)
+        self.name = name
+
+    # -- geometry ---------------------------------------------------------------------
+    @property
+    def intrinsic(self) -> o3d.camera.PinholeCameraIntrinsic:
+        """Depth-camera intrinsic at the sequence's image scale."""
+        return scale_intrinsic(self._base_intrinsic, self.image_scale)
+
+    @property
+    def color_intrinsic(self) -> o3d.camera.PinholeCameraIntrinsic:
+        """Colour intrinsic at the sequence's image scale (the depth one when registered)."""
+        base = self._base_color_intrinsic or self._base_intrinsic
+        return scale_intrinsic(base, self.image_scale)
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) float64 depth intrinsic matrix at the sequence's image scale."""
+        return np.asarray(self.intrinsic.intrinsic_matrix, dtype=np.float64)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(height, width) of the frames as returned by indexing."""
+        return self.intrinsic.height, self.intrinsic.width
+
+    # -- container protocol -----------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._readers)
+
+    def __getitem__(self, index: int) -> Frame:
+        n = len(self)
+        if not isinstance(index, (int, np.integer)):
+            raise InputError(f"frame index must be an int, got {type(index).__name__}; use .select()")
+        if not -n <= index < n:
+            raise IndexError(f"frame index {index} out of range for {n} frames")
+        index = int(index) % n
+        color, depth = self._readers[index]()
+        return Frame(*self._finish(color, depth, index), float(self.timestamps[index]), index)
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def __repr__(self) -> str:
+        h, w = self.image_size
+        gt = "with" if self.gt_poses is not None else "without"
+        return f"RGBDSequence({self.name!r}, {len(self)} frames, {w}x{h}, {gt} GT poses)"
+
+    def _finish(self, color, depth, index):
+        """Validate a raw frame, apply colour registration size, truncation and scale."""
+        color = np.asarray(color)
+        depth = np.asarray(depth)
+        where = f"{self.name} frame {index}"
+        if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8:
+            raise DatasetError(f"{where}: colour must be uint8 (H, W, 3), got {color.dtype} {color.shape}")
+        if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.floating):
+            raise DatasetError(f"{where}: depth must be float (H, W) metres, got {depth.dtype} {depth.shape}")
+        base = self._base_intrinsic
+        if depth.shape != (base.height, base.width):
+            raise DatasetError(
+                f"{where}: depth is {depth.shape[1]}x{depth.shape[0]} but the intrinsic is "
+                f"{base.width}x{base.height}"
+            )
+        color_base = self._base_color_intrinsic or base
+        if color.shape[:2] != (color_base.height, color_base.width):
+            raise DatasetError(
+                f"{where}: colour is {color.shape[1]}x{color.shape[0]} but depth/intrinsic is "
+                f"{color_base.width}x{color_base.height}"
+            )
+        depth = depth.astype(np.float32, copy=True)
+        if not np.isfinite(depth).all() or (depth < 0).any():
+            raise DatasetError(f"{where}: depth has NaN/inf or negative values")
+        if self.depth_trunc > 0:
+            depth[depth > self.depth_trunc] = 0
+        if self.image_scale != 1.0:
+            h, w = self.image_size
+            depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+            ch, cw = self.color_intrinsic.height, self.color_intrinsic.width
+            color = cv2.resize(color, (cw, ch), interpolation=cv2.INTER_AREA)
+        return np.ascontiguousarray(color), depth
+
+    # -- derived sequences --------------------------------------------------------------
+    def _derive(self, readers, timestamps, gt_poses, image_scale):
+        return RGBDSequence(
+            readers,
+            self._base_intrinsic,
+            timestamps,
+            gt_poses,
+            self.depth_trunc,
+            self._base_color_intrinsic,
+            self.name,
+            image_scale,
+        )
+
+    def select(self, indices) -> "RGBDSequence":
+        """Sub-sequence of the given frame indices (a list, range or boolean mask)."""
+        idx = np.arange(len(self))[np.asarray(indices)] if len(self) else np.asarray(indices)
+        idx = np.atleast_1d(idx).astype(int)
+        if idx.size == 0:
+            raise InputError(f"select(): no frames selected from {self.name}")
+        gt = None if self.gt_poses is None else self.gt_poses[idx]
+        return self._derive([self._readers[i] for i in idx], self.timestamps[idx], gt, self.image_scale)
+
+    def rescaled(self, image_scale: float) -> "RGBDSequence":
+        """The same frames resized by `image_scale` (in (0, 1]) relative to the files."""
+        return self._derive(self._readers, self.timestamps, self.gt_poses, image_scale)
+
+    def to_open3d(self, index: int) -> o3d.geometry.RGBDImage:
+        """Frame `index` as an ``o3d.geometry.RGBDImage`` (depth float metres, colour uint8).
+
+        The colour is resampled onto the depth grid when the two intrinsics differ.
+        """
+        frame = self[index]
+        color = self.color_on_depth_grid(frame.color)
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(color),
+            o3d.geometry.Image(frame.depth),
+            depth_scale=1.0,
+            depth_trunc=self.depth_trunc or 1e6,
+            convert_rgb_to_intensity=False,
+        )
+
+    def color_on_depth_grid(self, color: np.ndarray) -> np.ndarray:
+        """Resample a colour image onto the depth image's pixel grid (identity if registered)."""
+        if self._base_color_intrinsic is None:
+            return color
+        kd, kc = self.K, np.asarray(self.color_intrinsic.intrinsic_matrix)
+        h, w = self.image_size
+        u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        map_x = (u - kd[0, 2]) * (kc[0, 0] / kd[0, 0]) + kc[0, 2]
+        map_y = (v - kd[1, 2]) * (kc[1, 1] / kd[1, 1]) + kc[1, 2]
+        return cv2.remap(color, map_x.astype(np.float32), map_y.astype(np.float32), cv2.INTER_LINEAR)
+
+    # -- construction from memory -------------------------------------------------------
+    @classmethod
+    def from_rgbd_images(
+        cls,
+        images: Sequence,
+        intrinsic: o3d.camera.PinholeCameraIntrinsic,
+        timestamps: Sequence[float] | None = None,
+        gt_poses: np.ndarray | None = None,
+        depth_scale: float = 1.0,
+        depth_trunc: float = 0.0,
+        name: str = "in-memory",
+    ) -> "RGBDSequence":
+        """Sequence from in-memory frames.
+
+        images: list of ``o3d.geometry.RGBDImage`` (depth in metres, as made by
+        ``create_from_color_and_depth(..., depth_scale=...)``) or of ``(color, depth)`` numpy
+        pairs: colour uint8 (H, W, 3), depth uint16 (divided by `depth_scale`) or float
+        metres. intrinsic: the depth camera's ``o3d.camera.PinholeCameraIntrinsic``.
+        """
+        readers = []
+        for i, image in enumerate(images):
+            if isinstance(image, o3d.geometry.RGBDImage):
+                color = np.asarray(image.color)
+                depth = np.asarray(image.depth, dtype=np.float32)
+                if color.ndim == 2 or color.dtype != np.uint8:
+                    raise InputError(
+                        f"images[{i}]: the RGBDImage colour is grey/float; create it with "
+                        "convert_rgb_to_intensity=False so that colour is kept"
+                    )
+            elif isinstance(image, (tuple, list)) and len(image) == 2:
+                color, depth = (np.asarray(a) for a in image)
+                if depth.dtype.kind in "ui":
+                    depth = depth.astype(np.float32) / np.float32(depth_scale)
+            else:
+                raise InputError(
+                    f"images[{i}] must be an o3d.geometry.RGBDImage or a (color, depth) pair, "
+                    f"got {type(image).__name__}"
+                )
+            readers.append(_constant_reader(np.array(color), np.array(depth)))
+        return cls(readers, intrinsic, timestamps, gt_poses, depth_trunc, name=name)
+
+
+def _constant_reader(color: np.ndarray, depth: np.ndarray) -> FrameReader:
+    return lambda: (color, depth)
