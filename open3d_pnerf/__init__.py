@@ -6,6 +6,7 @@ Public API::
     traj = open3d_pnerf.track(seq)                      # poses + 6x6 covariances
     targets = open3d_pnerf.depth_targets(seq, traj)     # per-pixel depth mean and sigma
     mesh = open3d_pnerf.tsdf_fusion(seq, traj.poses)    # the Open3D TSDF baseline
+    recon = open3d_pnerf.reconstruct(seq)               # all of it + the probabilistic NeRF
 """
 
 from ._deps import require
@@ -14,8 +15,31 @@ require("open3d")
 require("torch")
 
 from . import errors  # noqa: E402
+from .baselines import TSDFVolume, tsdf_fusion  # noqa: E402
+from .config import ReconstructionConfig  # noqa: E402
 from .data import RGBDSequence, load_sample, load_sequence  # noqa: E402
+from .losses import LossGains  # noqa: E402
+from .reconstruction import Reconstruction, reconstruct  # noqa: E402
+from .targets import DepthTargets, SensorNoise, depth_targets  # noqa: E402
+from .tracking import Trajectory, absolute_trajectory_error, track  # noqa: E402
 
 __version__ = "0.1.0"
 
-__all__ = ["RGBDSequence", "errors", "load_sample", "load_sequence"]
+__all__ = [
+    "DepthTargets",
+    "LossGains",
+    "RGBDSequence",
+    "Reconstruction",
+    "ReconstructionConfig",
+    "SensorNoise",
+    "TSDFVolume",
+    "Trajectory",
+    "absolute_trajectory_error",
+    "depth_targets",
+    "errors",
+    "load_sample",
+    "load_sequence",
+    "reconstruct",
+    "track",
+    "tsdf_fusion",
+]

@@ -167,7 +167,7 @@ class RGBDSequence:
     @property
     def K(self) -> np.ndarray:
         """(3, 3) float64 depth intrinsic matrix at the sequence's image scale."""
-        return np.asarray(self.intrinsic.intrinsic_matrix, dtype=np.float64)
+        return np.array(self.intrinsic.intrinsic_matrix, dtype=np.float64)
 
     @property
     def image_size(self) -> tuple[int, int]:

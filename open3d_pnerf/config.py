@@ -1,0 +1,149 @@
+"""ReconstructionConfig: every setting of a reconstruction, with presets and validation."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from .errors import ConfigError
+from .fields import FIELDS
+from .losses import LOSSES, LossGains
+
+
+@dataclasses.dataclass
+class ReconstructionConfig:
+    """Settings of :func:`open3d_pnerf.reconstruct`. Presets: ``ReconstructionConfig.preset("fast")``."""
+
+    loss: str = "pnerf"
+    """"pnerf" (colour + depth-PDF + depth L1), "photometric" (colour only) or "dsnerf"."""
+    field: str = "grid"
+    """"grid" (multi-resolution dense grids, fastest on CPU), "hashgrid" (Instant-NGP hash
+    grid, less memory) or "vanilla" (the paper's 8x256 MLP, slow, for comparison)."""
+    max_steps: int = 2000
+    """Optimiser steps; the learning-rate schedule is laid over this many steps."""
+    time_budget_s: float | None = None
+    """Stop training after this many seconds (None = no limit). With a budget the schedule
+    follows max(step / max_steps, elapsed / budget), so runs are not bit-reproducible."""
+    image_scale: float = 0.5
+    """Training/evaluation image size relative to the sequence's frames, in (0, 1]."""
+    holdout_every: int = 0
+    """Keep every k-th frame (0, k, 2k, ...) out of training for evaluation; 0 = none."""
+    seed: int = 0
+    """Seed of every random choice (rays, samples, initialisation)."""
+    device: str = "cpu"
+    """Torch device for the field: "cpu", "cuda", "cuda:1", ..."""
+    rays_per_batch: int = 512
+    """Rays per optimiser step."""
+    n_coarse: int = 24
+    """Stratified samples per ray (coarse pass)."""
+    n_fine: int = 16
+    """Importance samples per ray drawn from the coarse weights (fine pass)."""
+    n_guided: int = 16
+    """Samples in mean +- 3 sigma of the depth target (extra importance samples without one)."""
+    lr: float = 1e-2
+    """Initial Adam learning rate."""
+    lr_final_factor: float = 0.05
+    """The learning rate decays exponentially to lr * lr_final_factor at the end."""
+    gains: LossGains = dataclasses.field(default_factory=LossGains)
+    """Loss gains Kc, Kd, Kz (and the DS-NeRF gain)."""
+    coarse_loss: bool = True
+    """Add the coarse-render terms (the paper's coarse + fine losses)."""
+    grid_resolutions: tuple = (16, 32, 64, 128, 192)
+    """Resolutions of the dense grid levels across the scene box (field="grid")."""
+    grid_features: int = 2
+    """Features per dense grid level (memory: sum R^3 * features floats, x4 with Adam)."""
+    hash_levels: int = 16
+    """Hash-grid levels."""
+    hash_log2_table_size: int = 19
+    """log2 of the hash table size per level (memory: levels * 2^size * 2 floats)."""
+    hash_max_resolution: int = 1024
+    """Finest hash-grid resolution across the scene box."""
+    eval_every: int = 250
+    """Steps between held-out evaluations (a fixed subset of held-out pixels)."""
+    checkpoint_every: int = 500
+    """Steps between checkpoints (when a checkpoint directory is given)."""
+    cache_frames: int = 64
+    """Training frames kept decoded in memory at once (long sequences rotate through)."""
+    point_noise_m: float = 2.0
+    """Noise scale of the pose-graph covariances in tracking (see tracking.DEFAULT_POINT_NOISE_M:
+    2.0 matches the covariances to the measured pose errors on TUM fr1/xyz)."""
+    export_scale: float = 0.5
+    """Resolution of the renders used for mesh and point-cloud export, relative to training."""
+    mesh_voxel_size: float = 0.01
+    """Voxel size (m) of the TSDF that fuses rendered depth into the exported mesh."""
+    max_point_std: float = 0.05
+    """Exported points whose rendered depth std exceeds this (m) are dropped."""
+    min_opacity: float = 0.9
+    """Exported points/mesh depth need at least this accumulated opacity."""
+    progress: bool = True
+    """Show progress bars."""
+
+    PRESETS = {
+        "fast": dict(max_steps=1500, time_budget_s=150.0),
+        "quality": dict(max_steps=20000, time_budget_s=None, image_scale=1.0, rays_per_batch=2048,
+                        n_coarse=48, n_fine=48, n_guided=24, grid_resolutions=(16, 32, 64, 128, 256, 384)),
+        "test": dict(max_steps=60, time_budget_s=None, rays_per_batch=256, n_coarse=16, n_fine=16,
+                     n_guided=8, grid_resolutions=(16, 32, 64, 128), hash_log2_table_size=15, hash_levels=8,
+                     hash_max_resolution=256, eval_every=30, export_scale=0.5),
+    }
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> "ReconstructionConfig":
+        """A preset ("fast": a couple of minutes on a laptop CPU; "quality"; "test") with overrides."""
+        if name not in cls.PRESETS:
+            raise ConfigError(f"unknown preset {name!r}; expected one of {sorted(cls.PRESETS)}")
+        return cls.from_dict({**cls.PRESETS[name], **overrides})
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> "ReconstructionConfig":
+        """Build from a dict (e.g. a saved config.json), rejecting unknown fields."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ConfigError(f"unknown config field(s) {unknown}; valid fields: {sorted(names)}")
+        values = dict(values)
+        if isinstance(values.get("gains"), dict):
+            gain_names = {f.name for f in dataclasses.fields(LossGains)}
+            bad = sorted(set(values["gains"]) - gain_names)
+            if bad:
+                raise ConfigError(f"unknown loss gain(s) {bad}; valid: {sorted(gain_names)}")
+            values["gains"] = LossGains(**values["gains"])
+        if "grid_resolutions" in values:  # JSON gives lists
+            values["grid_resolutions"] = tuple(values["grid_resolutions"])
+        config = cls(**values)
+        config.validate()
+        return config
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def replace(self, **changes) -> "ReconstructionConfig":
+        """A validated copy with some fields changed."""
+        return self.from_dict({**self.to_dict(), **changes})
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the first field with a bad value."""
+        checks = [
+            ("loss", self.loss in LOSSES, f"one of {LOSSES}"),
+            ("field", self.field in FIELDS, f"one of {tuple(FIELDS)}"),
+            ("max_steps", isinstance(self.max_steps, int) and self.max_steps >= 1, "an int >= 1"),
+            ("time_budget_s", self.time_budget_s is None or self.time_budget_s > 0, "None or > 0 seconds"),
+            ("image_scale", 0 < self.image_scale <= 1, "in (0, 1]"),
+            ("holdout_every", isinstance(self.holdout_every, int) and self.holdout_every >= 0, "an int >= 0"),
+            ("rays_per_batch", self.rays_per_batch >= 1, ">= 1"),
+            ("n_coarse", self.n_coarse >= 2, ">= 2"),
+            ("n_fine", self.n_fine >= 0, ">= 0"),
+            ("n_guided", self.n_guided >= 0, ">= 0"),
+            ("lr", self.lr > 0, "> 0"),
+            ("lr_final_factor", 0 < self.lr_final_factor <= 1, "in (0, 1]"),
+            ("grid_resolutions", len(self.grid_resolutions) >= 1 and all(int(r) >= 2 for r in self.grid_resolutions),
+             "a non-empty tuple of ints >= 2"),
+            ("cache_frames", self.cache_frames >= 1, ">= 1"),
+            ("export_scale", 0 < self.export_scale <= 1, "in (0, 1]"),
+            ("mesh_voxel_size", self.mesh_voxel_size > 0, "> 0 metres"),
+            ("device", isinstance(self.device, str) and self.device.split(":")[0] in ("cpu", "cuda", "mps"),
+             '"cpu", "cuda" or "cuda:N"'),
+        ]
+        for name, ok, expected in checks:
+            if not ok:
+                raise ConfigError(f"config field {name}={getattr(self, name)!r} is invalid: expected {expected}")

@@ -1,0 +1,327 @@
+"""`reconstruct()`: tracking -> depth targets -> training -> export, and the Reconstruction.
+
+A saved reconstruction is a folder: ``reconstruction.json`` (format version, config, box,
+intrinsic, frame split), ``model.pt`` (weights only), ``poses.npy``, ``covariances.npy``,
+``mesh.ply``, ``point_cloud.ply`` (with per-point ``depth_sigma``), and the trajectory as
+``trajectory_tum.txt`` and ``trajectory.log``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import torch
+from tqdm.auto import tqdm
+
+from .config import ReconstructionConfig
+from .data.loaders import write_log_trajectory, write_tum_trajectory
+from .data.sequence import RGBDSequence, check_intrinsic, check_poses, scale_intrinsic
+from .errors import CheckpointError, ConfigError, InputError
+from .export import (
+    mesh_from_renders,
+    point_cloud_from_renders,
+    read_point_cloud_ply,
+    write_mesh_ply,
+    write_point_cloud_ply,
+)
+from .fields import make_field
+from .rendering import Rays, make_rays
+from .targets import DepthTargets, depth_targets
+from .training import RayBatcher, Trainer, atomic_torch_save, render_field, safe_torch_load, sampling_of
+
+FORMAT_VERSION = 1
+
+
+def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: float = 0.1, stride: int = 4) -> np.ndarray:
+    """(2, 3) axis-aligned box (m) holding the camera centres and the targets' surface points.
+
+    Uses the 0.5-99.5 percentiles of back-projected target depths (every `stride`-th pixel)
+    to ignore stray far points, then pads by `pad` times the size plus 5 cm.
+    """
+    pts = [poses[:, :3, 3]]
+    for i in range(len(targets)):
+        valid = np.zeros_like(targets.valid[i])
+        valid[::stride, ::stride] = targets.valid[i][::stride, ::stride]
+        v, u = np.nonzero(valid)
+        z = targets.mean[i][v, u]
+        cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], 1)
+        pts.append(cam @ poses[i][:3, :3].T + poses[i][:3, 3])
+    pts = np.concatenate(pts)
+    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
+    lo, hi = np.minimum(lo, poses[:, :3, 3].min(0)), np.maximum(hi, poses[:, :3, 3].max(0))
+    margin = pad * (hi - lo) + 0.05
+    return np.stack([lo - margin, hi + margin]).astype(np.float32)
+
+
+def split_frames(n: int, holdout_every: int) -> tuple[np.ndarray, np.ndarray]:
+    """(train, holdout) frame indices: every holdout_every-th frame (0, k, 2k, ...) held out."""
+    idx = np.arange(n)
+    if holdout_every <= 0:
+        return idx, idx[:0]
+    hold = idx % holdout_every == 0
+    if hold.all() or (~hold).sum() < 2:
+        raise InputError(f"holdout_every={holdout_every} leaves fewer than 2 training frames of {n}")
+    return idx[~hold], idx[hold]
+
+
+class Reconstruction:
+    """A trained probabilistic scene model with its poses and exported geometry.
+
+    poses (N, 4, 4) camera-to-world and covariances (N, 6, 6) cover every frame of the
+    input sequence; train_indices / holdout_indices say which trained. intrinsic is the
+    training-resolution ``o3d.camera.PinholeCameraIntrinsic``.
+    """
+
+    def __init__(self, field, config: ReconstructionConfig, poses, covariances, intrinsic, aabb,
+                 train_indices, holdout_indices, timestamps=None, mesh=None, point_cloud=None,
+                 point_sigma=None, stats=None):
+        self.field = field
+        self.config = config
+        self.poses = np.asarray(poses, np.float64)
+        self.covariances = np.asarray(covariances, np.float64)
+        self.intrinsic = intrinsic
+        self.aabb = np.asarray(aabb, np.float32)
+        self.train_indices = np.asarray(train_indices, int)
+        self.holdout_indices = np.asarray(holdout_indices, int)
+        self.timestamps = np.arange(len(self.poses), dtype=float) if timestamps is None else np.asarray(timestamps)
+        self.mesh = mesh
+        self.point_cloud = point_cloud
+        self.point_sigma = point_sigma
+        self.stats = stats or {}
+
+    @property
+    def device(self) -> torch.device:
+        return self.field.aabb.device
+
+    def __repr__(self) -> str:
+        mesh = f"{len(self.mesh.triangles)} triangles" if self.mesh is not None else "no mesh"
+        return f"Reconstruction({len(self.poses)} frames, {len(self.train_indices)} trained, {mesh})"
+
+    def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None, chunk: int = 2048) -> dict:
+        """Render the field from a camera-to-world pose (4, 4).
+
+        intrinsic: an ``o3d.camera.PinholeCameraIntrinsic`` (default: the training one).
+        Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m,
+        depth_std (H, W) m (the spread of the model's depth distribution along each ray),
+        opacity (H, W) in [0, 1].
+        """
+        pose = check_poses(np.asarray(pose)[None], 1, "pose")[0]
+        intrinsic = check_intrinsic(intrinsic or self.intrinsic)
+        h, w = intrinsic.height, intrinsic.width
+        K = torch.as_tensor(np.asarray(intrinsic.intrinsic_matrix), dtype=torch.float32, device=self.device)
+        v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
+        rays = make_rays(torch.as_tensor(pose, dtype=torch.float32, device=self.device), K,
+                         u.reshape(-1).float(), v.reshape(-1).float(), self.field.aabb)
+        out = render_field(self.field, rays, sampling_of(self.config), chunk)
+        norms = rays.norms
+        return {
+            "color": out["color"].clamp(0, 1).view(h, w, 3).cpu().numpy(),
+            "depth": (out["depth"] / norms).view(h, w).cpu().numpy(),
+            "depth_std": (out["depth_var"].sqrt() / norms).view(h, w).cpu().numpy(),
+            "opacity": out["opacity"].view(h, w).cpu().numpy(),
+        }
+
+    def export_geometry(self, progress: bool = True) -> None:
+        """Render the training views at export_scale and rebuild .mesh, .point_cloud, .point_sigma."""
+        cfg = self.config
+        intr = scale_intrinsic(self.intrinsic, cfg.export_scale)
+        K = np.asarray(intr.intrinsic_matrix)
+        poses = self.poses[self.train_indices]
+        renders = [self.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
+        self.point_cloud, self.point_sigma = point_cloud_from_renders(
+            renders, poses, K, cfg.min_opacity, cfg.max_point_std, voxel_size=cfg.mesh_voxel_size / 2
+        )
+        self.mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, cfg.max_point_std)
+
+    # -- persistence -------------------------------------------------------------------
+    def save(self, directory) -> Path:
+        """Write weights, config, poses, covariances, trajectories, mesh.ply, point_cloud.ply."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        intr = self.intrinsic
+        meta = {
+            "format_version": FORMAT_VERSION,
+            "config": self.config.to_dict(),
+            "aabb": self.aabb.tolist(),
+            "intrinsic": {"width": intr.width, "height": intr.height,
+                          "K": np.asarray(intr.intrinsic_matrix).tolist()},
+            "train_indices": self.train_indices.tolist(),
+            "holdout_indices": self.holdout_indices.tolist(),
+            "timestamps": self.timestamps.tolist(),
+            "stats": self.stats,
+        }
+        atomic_torch_save({k: v.cpu() for k, v in self.field.state_dict().items()}, d / "model.pt")
+        _atomic_write_text(d / "reconstruction.json", json.dumps(meta, indent=1))
+        for name, arr in (("poses", self.poses), ("covariances", self.covariances)):
+            _atomic_write(d / f"{name}.npy", lambda fh, a=arr: np.save(fh, a))
+        write_tum_trajectory(d / "trajectory_tum.txt", self.poses, self.timestamps)
+        write_log_trajectory(d / "trajectory.log", self.poses)
+        if self.mesh is not None:
+            write_mesh_ply(d / "mesh.ply", self.mesh)
+        if self.point_cloud is not None:
+            write_point_cloud_ply(d / "point_cloud.ply", self.point_cloud, self.point_sigma)
+        return d
+
+    @classmethod
+    def load(cls, directory, device: str | None = None) -> "Reconstruction":
+        """Load a folder written by :meth:`save` (weights_only: a crafted file cannot run code)."""
+        d = Path(directory)
+        meta_path = d / "reconstruction.json"
+        if not meta_path.is_file():
+            raise CheckpointError(f"{d}: not a saved reconstruction (reconstruction.json missing)")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise CheckpointError(f"{meta_path}: corrupt JSON ({exc})") from None
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise CheckpointError(
+                f"{meta_path}: format version {meta.get('format_version')!r}, this library reads {FORMAT_VERSION}"
+            )
+        try:
+            config = ReconstructionConfig.from_dict(meta["config"])
+        except ConfigError as exc:
+            raise CheckpointError(f"{meta_path}: incompatible config ({exc})") from None
+        if device:
+            config = config.replace(device=device)
+        field = build_field(config, np.asarray(meta["aabb"], np.float32))
+        state = safe_torch_load(d / "model.pt")
+        try:
+            field.load_state_dict(state)
+        except (RuntimeError, KeyError) as exc:
+            raise CheckpointError(f"{d / 'model.pt'}: weights do not match the config ({exc})") from None
+        K = np.asarray(meta["intrinsic"]["K"])
+        intr = o3d.camera.PinholeCameraIntrinsic(meta["intrinsic"]["width"], meta["intrinsic"]["height"],
+                                                 K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+        mesh = o3d.io.read_triangle_mesh(str(d / "mesh.ply")) if (d / "mesh.ply").is_file() else None
+        cloud, sigma = read_point_cloud_ply(d / "point_cloud.ply") if (d / "point_cloud.ply").is_file() else (None, None)
+        return cls(field, config, np.load(d / "poses.npy"), np.load(d / "covariances.npy"), intr,
+                   meta["aabb"], meta["train_indices"], meta["holdout_indices"], meta["timestamps"],
+                   mesh, cloud, sigma, meta.get("stats"))
+
+
+def _atomic_write(path: Path, write) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as fh:
+        write(fh)
+    tmp.replace(path)
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    _atomic_write(path, lambda fh: fh.write(text.encode()))
+
+
+def build_field(config: ReconstructionConfig, aabb: np.ndarray):
+    """The field named by config.field, on config.device, seeded by config.seed."""
+    torch.manual_seed(config.seed)
+    kwargs = {}
+    if config.field == "grid":
+        kwargs = dict(resolutions=config.grid_resolutions, features=config.grid_features)
+    elif config.field == "hashgrid":
+        kwargs = dict(levels=config.hash_levels, log2_table_size=config.hash_log2_table_size,
+                      max_resolution=config.hash_max_resolution)
+    try:
+        device = torch.device(config.device)
+        return make_field(config.field, torch.as_tensor(aabb), **kwargs).to(device)
+    except (RuntimeError, AssertionError) as exc:
+        raise ConfigError(f"config field device={config.device!r} is not usable here ({exc})") from None
+
+
+def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None = None, poses=None,
+                covariances=None, checkpoint_dir=None, resume: bool = False) -> Reconstruction:
+    """Reconstruct a probabilistic scene model from an RGB-D sequence.
+
+    Stages: tracking (skipped when `poses` (N, 4, 4) camera-to-world are given), per-pixel
+    depth targets, training the field, exporting mesh and point cloud.
+    config: a ReconstructionConfig (default: the "fast" preset). checkpoint_dir: where
+    training checkpoints go; resume=True continues from its checkpoint.pt.
+    """
+    if not isinstance(rgbd_sequence, RGBDSequence):
+        raise InputError(f"rgbd_sequence must be an RGBDSequence (see load_sequence), got {type(rgbd_sequence).__name__}")
+    config = config or ReconstructionConfig.preset("fast")
+    if not isinstance(config, ReconstructionConfig):
+        raise InputError(f"config must be a ReconstructionConfig, got {type(config).__name__}")
+    config.validate()
+    n = len(rgbd_sequence)
+    if n < 2:
+        raise InputError(f"reconstruct() needs at least 2 frames, the sequence has {n}")
+    train_idx, hold_idx = split_frames(n, config.holdout_every)
+    stages = tqdm(total=4, desc="reconstruct", disable=not config.progress, dynamic_ncols=True)
+    timings = {}
+    t0 = time.perf_counter()
+
+    stages.set_postfix_str("tracking")
+    if poses is None:
+        from .tracking import track
+
+        trajectory = track(rgbd_sequence, point_noise_m=config.point_noise_m, progress=config.progress)
+        poses, covariances = trajectory.poses, trajectory.covariances
+    poses = check_poses(poses, n, "poses")
+    covariances = np.zeros((n, 6, 6)) if covariances is None else np.asarray(covariances, np.float64)
+    timings["tracking_s"] = round(time.perf_counter() - t0, 2)
+    stages.update(1)
+
+    stages.set_postfix_str("depth targets")
+    t1 = time.perf_counter()
+    train_seq = rgbd_sequence.select(train_idx)
+    train_seq = train_seq.rescaled(train_seq.image_scale * config.image_scale)
+    # built for every loss: they also bound the scene box (photometric ignores them in the loss)
+    targets = depth_targets(train_seq, poses=poses[train_idx], covariances=covariances[train_idx],
+                            progress=config.progress)
+    K = train_seq.K
+    aabb = scene_box(targets, poses[train_idx], K)
+    timings["targets_s"] = round(time.perf_counter() - t1, 2)
+    stages.update(1)
+
+    stages.set_postfix_str("training")
+    field = build_field(config, aabb)
+    device = field.aabb.device
+    batcher = RayBatcher(train_seq, poses[train_idx], targets, field.aabb, device, config.seed, config.cache_frames)
+    eval_rays = _holdout_rays(rgbd_sequence, hold_idx, poses, config, field.aabb, device)
+    trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir)
+    if resume:
+        if not checkpoint_dir:
+            raise InputError("resume=True needs checkpoint_dir")
+        trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt")
+    train_stats = trainer.train()
+    stages.update(1)
+
+    stages.set_postfix_str("export")
+    t2 = time.perf_counter()
+    recon = Reconstruction(field, config, poses, covariances, train_seq.intrinsic, aabb, train_idx, hold_idx,
+                           rgbd_sequence.timestamps,
+                           stats={"training": train_stats, "history": trainer.history,
+                                  "targets": targets.summary()})
+    recon.export_geometry(progress=config.progress)
+    timings["export_s"] = round(time.perf_counter() - t2, 2)
+    timings["total_s"] = round(time.perf_counter() - t0, 2)
+    recon.stats["timings"] = timings
+    stages.update(1)
+    stages.close()
+    return recon
+
+
+def _holdout_rays(sequence, hold_idx, poses, config, aabb, device, n_rays: int = 2048):
+    """A fixed random subset of held-out pixels (Rays, rgb) for periodic evaluation."""
+    if len(hold_idx) == 0:
+        return None
+    seq = sequence.select(hold_idx)
+    seq = seq.rescaled(seq.image_scale * config.image_scale)
+    h, w = seq.image_size
+    rng = np.random.default_rng(config.seed + 1)
+    per = max(1, n_rays // len(hold_idx))
+    K = torch.as_tensor(seq.K, dtype=torch.float32, device=device)
+    rays, rgbs = [], []
+    for k, i in enumerate(hold_idx):
+        pix = rng.choice(h * w, per, replace=False)
+        color = seq.color_on_depth_grid(seq[k].color).reshape(-1, 3)[pix] / 255.0
+        u, v = torch.as_tensor(pix % w, dtype=torch.float32), torch.as_tensor(pix // w, dtype=torch.float32)
+        pose = torch.as_tensor(poses[i], dtype=torch.float32, device=device)
+        rays.append(make_rays(pose, K, u.to(device), v.to(device), aabb))
+        rgbs.append(torch.as_tensor(color, dtype=torch.float32, device=device))
+    cat = lambda name: torch.cat([getattr(r, name) for r in rays])  # noqa: E731
+    return Rays(cat("origins"), cat("directions"), cat("near"), cat("far")), torch.cat(rgbs)

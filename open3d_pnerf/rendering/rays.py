@@ -1,0 +1,67 @@
+"""Camera rays in world space and their entry/exit distances in the scene box.
+
+Pixel (u, v) of an OpenCV camera with intrinsic K has its centre at integer coordinates;
+its ray is o + t d with d = R K^-1 [u, v, 1] (unit z component in the camera frame), so
+t = z * ||d|| for a point at z-depth z.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+
+@dataclasses.dataclass
+class Rays:
+    """A batch of R rays: origins (R, 3), directions (R, 3) with unit camera-z, near/far (R,)."""
+
+    origins: torch.Tensor
+    directions: torch.Tensor
+    near: torch.Tensor
+    far: torch.Tensor
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def __getitem__(self, index) -> "Rays":
+        return Rays(self.origins[index], self.directions[index], self.near[index], self.far[index])
+
+    @property
+    def norms(self) -> torch.Tensor:
+        """(R,) ||d||: ray distance per metre of camera z-depth."""
+        return self.directions.norm(dim=-1)
+
+
+def pixel_rays(pose: torch.Tensor, K: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
+    """Origins and directions (R, 3) of pixels (u, v) (R,) for camera-to-world pose(s).
+
+    pose: (4, 4) or (R, 4, 4); K: (3, 3) or (R, 3, 3). Directions have unit camera-z.
+    """
+    if K.dim() == 2:
+        K = K.expand(u.shape[0], 3, 3)
+    if pose.dim() == 2:
+        pose = pose.expand(u.shape[0], 4, 4)
+    x = (u - K[:, 0, 2]) / K[:, 0, 0]
+    y = (v - K[:, 1, 2]) / K[:, 1, 1]
+    d_cam = torch.stack([x, y, torch.ones_like(x)], -1)
+    directions = (pose[:, :3, :3] @ d_cam[..., None])[..., 0]
+    return pose[:, :3, 3].clone(), directions
+
+
+def intersect_aabb(origins, directions, aabb, min_near: float = 0.05):
+    """Entry and exit distances (R,) of rays in the box aabb (2, 3); far <= near means a miss."""
+    inv = 1.0 / torch.where(directions.abs() < 1e-9, torch.full_like(directions, 1e-9), directions)
+    t0 = (aabb[0] - origins) * inv
+    t1 = (aabb[1] - origins) * inv
+    near = torch.minimum(t0, t1).amax(-1).clamp(min=min_near)
+    far = torch.maximum(t0, t1).amin(-1)
+    return near, far
+
+
+def make_rays(pose, K, u, v, aabb, min_near: float = 0.05) -> Rays:
+    """World rays for pixels (u, v) clipped to the scene box (misses get far = near + 1e-3)."""
+    origins, directions = pixel_rays(pose, K, u, v)
+    near, far = intersect_aabb(origins, directions, aabb, min_near)
+    far = torch.maximum(far, near + 1e-3)
+    return Rays(origins, directions, near, far)

@@ -1,0 +1,78 @@
+"""Samples along rays, as sorted ray distances t (R, S) with their bins (R, S + 1).
+
+Each sample t_k represents the interval [e_k, e_{k+1}] of the bin edges e; edges are the
+midpoints between neighbouring samples, clipped to [near, far]. Volume rendering uses the
+bin widths, and the PNeRF density loss compares per-bin masses, so non-uniform samples
+(importance or depth-guided) are handled exactly.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .rays import Rays
+
+
+def bin_edges(t: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+    """(R, S + 1) bin edges for sorted samples t (R, S): midpoints, ends clipped to [near, far]."""
+    mid = 0.5 * (t[:, 1:] + t[:, :-1])
+    first = (2 * t[:, :1] - mid[:, :1]).clamp(min=near[:, None]) if t.shape[1] > 1 else near[:, None]
+    last = (2 * t[:, -1:] - mid[:, -1:]).clamp(max=far[:, None]) if t.shape[1] > 1 else far[:, None]
+    first = torch.minimum(first, t[:, :1])
+    last = torch.maximum(last, t[:, -1:])
+    return torch.cat([first, mid, last], 1)
+
+
+def stratified(rays: Rays, n: int, generator: torch.Generator | None = None, jitter: bool = True) -> torch.Tensor:
+    """(R, n) sorted samples, one uniformly jittered per equal slice of [near, far]."""
+    r = len(rays)
+    u = torch.arange(n, device=rays.near.device, dtype=torch.float32)
+    offset = torch.rand(r, n, device=u.device, generator=generator) if jitter else torch.full((r, n), 0.5, device=u.device)
+    s = (u + offset) / n
+    return rays.near[:, None] + s * (rays.far - rays.near)[:, None]
+
+
+def importance(
+    edges: torch.Tensor, weights: torch.Tensor, n: int, generator: torch.Generator | None = None, jitter: bool = True
+) -> torch.Tensor:
+    """(R, n) sorted samples drawn from the piecewise-constant PDF of `weights` on `edges`.
+
+    edges (R, S + 1), weights (R, S) >= 0 (e.g. coarse rendering weights). A small floor
+    keeps rays with zero weight sampling uniformly instead of producing NaN.
+    """
+    w = weights.detach() + 1e-5
+    pdf = w / w.sum(-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), pdf.cumsum(-1)], -1).clamp(max=1)
+    r = weights.shape[0]
+    base = torch.arange(n, device=w.device, dtype=torch.float32)
+    offset = torch.rand(r, n, device=w.device, generator=generator) if jitter else torch.full((r, n), 0.5, device=w.device)
+    u = ((base + offset) / n).contiguous()
+    idx = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, cdf.shape[1] - 1)
+    c0, c1 = cdf.gather(1, idx - 1), cdf.gather(1, idx)
+    e0, e1 = edges.gather(1, idx - 1), edges.gather(1, idx)
+    frac = ((u - c0) / (c1 - c0).clamp(min=1e-8)).clamp(0, 1)
+    return e0 + frac * (e1 - e0)
+
+
+def depth_guided(
+    rays: Rays, mean: torch.Tensor, sigma: torch.Tensor, n: int, generator: torch.Generator | None = None, spread: float = 3.0
+) -> torch.Tensor:
+    """(R, n) samples stratified over mean +- spread * sigma (ray-distance units), clipped to [near, far].
+
+    Samples fall on equal-probability slices of the Gaussian (inverse CDF of stratified
+    uniforms), so most land near the mean.
+    """
+    r = mean.shape[0]
+    base = torch.arange(n, device=mean.device, dtype=torch.float32)
+    u = (base + torch.rand(r, n, device=mean.device, generator=generator)) / n
+    lo = torch.special.ndtr(torch.tensor(-spread))
+    p = lo + u * (1 - 2 * lo)
+    t = mean[:, None] + sigma[:, None] * torch.special.ndtri(p)
+    return torch.minimum(torch.maximum(t, rays.near[:, None]), rays.far[:, None])
+
+
+def merge(*samples: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sorted union of sample sets (R, S_i) -> (t (R, S), index of each original column)."""
+    t = torch.cat(samples, 1)
+    t, order = t.sort(1)
+    return t, order

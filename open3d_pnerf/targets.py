@@ -1,0 +1,254 @@
+"""Uncertain per-pixel depth targets: sensor noise, pose uncertainty, multi-view fusion.
+
+For every pixel of every frame the target is a Gaussian over depth, N(mean, sigma^2), in
+**z-depth metres**. A ray r(t) = o + t d with d = K^-1 [u, v, 1] (unit z component) meets
+depth z at ray distance t = z * ||d||, so the ray-distance target is (mean, sigma) * ||d||
+(see :func:`ray_norms`).
+
+Variance of a pixel's target, built per frame i:
+  * sensor: sigma_z(z)^2 of the frame's own measurement (:class:`SensorNoise`);
+  * pose: frame i's 6x6 covariance S_i ([rotation, translation], right perturbation
+    T exp(xi), camera frame) moves the ray origin; along the unit ray r the variance is
+    r^T S_i[3:, 3:] r (the camera's own rotation does not move depth along its own ray).
+    Expressed in z units it is multiplied by r_z^2;
+  * fusion: neighbouring frames j are reprojected into frame i; an observation carries
+    sigma_z(z_j)^2 plus frame j's pose variance projected on i's ray (a^T S_j a with
+    a = J(p_j)^T R_ij^T r, J(p) = [-[p]x, I]). Observations within `consistency_sigmas`
+    of the frame's own depth are fused by inverse variance; the others are rejected as
+    outliers. Pixels without own depth take the fusion of >= `fill_min_views` mutually
+    consistent neighbour observations (a larger sigma: no own measurement).
+The frame's own pose variance is common to all observations on its ray, so it is added
+after fusion rather than averaged away.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from .data.sequence import RGBDSequence, check_poses
+from .errors import InputError
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorNoise:
+    """Axial depth noise sigma_z(z) = a + b (z - c)^2 in metres (Nguyen et al. 2012, Kinect)."""
+
+    a: float = 0.0012
+    b: float = 0.0019
+    c: float = 0.4
+
+    def sigma(self, z: np.ndarray) -> np.ndarray:
+        """sigma_z (m) for z-depth `z` (m), any shape."""
+        return self.a + self.b * (z - self.c) ** 2
+
+
+@dataclasses.dataclass
+class DepthTargets:
+    """Per-pixel Gaussian depth targets for the N frames of a sequence, all (N, H, W).
+
+    mean, sigma: float32 z-depth metres (0 where invalid). valid: bool. support: uint8
+    number of observations fused (own depth counts as one). filled: bool, True where the
+    frame had no own depth and the target comes from neighbours only.
+    """
+
+    mean: np.ndarray
+    sigma: np.ndarray
+    valid: np.ndarray
+    support: np.ndarray
+    filled: np.ndarray
+
+    def __len__(self) -> int:
+        return self.mean.shape[0]
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.mean.shape[1:]
+
+    def summary(self) -> dict:
+        """Fractions of valid/filled pixels and sigma percentiles (mm) over valid pixels."""
+        sig = self.sigma[self.valid]
+        pct = np.percentile(sig, [5, 50, 95]) * 1000 if sig.size else [np.nan] * 3
+        return {
+            "valid_fraction": float(self.valid.mean()),
+            "filled_fraction": float(self.filled.mean()),
+            "sigma_mm_p5_p50_p95": [round(float(p), 2) for p in pct],
+            "mean_support": float(self.support[self.valid].mean()) if sig.size else 0.0,
+        }
+
+
+def ray_norms(K: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W) float32 ||K^-1 [u, v, 1]||: ray distance per metre of z-depth at each pixel."""
+    u, v = np.meshgrid(np.arange(width), np.arange(height))
+    x = (u - K[0, 2]) / K[0, 0]
+    y = (v - K[1, 2]) / K[1, 1]
+    return np.sqrt(x * x + y * y + 1).astype(np.float32)
+
+
+def _backproject(depth: np.ndarray, K: np.ndarray):
+    """Valid pixels of `depth` as (M, 3) camera points and their flat pixel indices."""
+    h, w = depth.shape
+    flat = np.flatnonzero(depth > 0)
+    v, u = np.divmod(flat, w)
+    z = depth.ravel()[flat].astype(np.float64)
+    pts = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], 1)
+    return pts, flat
+
+
+def _unit_rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(H, W, 3) unit ray directions in the camera frame."""
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((h, w))], -1)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _own_pose_var(rays: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(H, W) z-unit variance of a frame's translation covariance along its own unit rays."""
+    return (rays @ cov[3:, 3:] * rays).sum(-1) * rays[..., 2] ** 2
+
+
+def reproject(depth_j, var_j, pose_j, cov_j, pose_i, K, shape_i):
+    """Reproject frame j's depth into frame i (z-buffered).
+
+    Returns (z, var) maps of frame i's shape, NaN where nothing lands: z in frame i's
+    z-depth metres; var = var_j (sensor) + frame j's pose variance on frame i's ray.
+    """
+    h, w = shape_i
+    p_j, flat_j = _backproject(depth_j, K)
+    rel = np.linalg.inv(pose_i) @ pose_j
+    q = p_j @ rel[:3, :3].T + rel[:3, 3]
+    front = q[:, 2] > 1e-6
+    q, p_j, flat_j = q[front], p_j[front], flat_j[front]
+    u = np.round(q[:, 0] / q[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
+    v = np.round(q[:, 1] / q[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    q, p_j, flat_j, pix = q[inside], p_j[inside], flat_j[inside], (v * w + u)[inside]
+    # z-buffer: keep the nearest point per target pixel
+    order = np.lexsort((q[:, 2], pix))
+    pix, first = np.unique(pix[order], return_index=True)
+    keep = order[first]
+    q, p_j, flat_j = q[keep], p_j[keep], flat_j[keep]
+    r = q / np.linalg.norm(q, axis=1, keepdims=True)
+    # a = J(p_j)^T R_ij^T r with J = [-[p]x, I], i.e. [p_j x R_ij^T r, R_ij^T r]:
+    # the sensitivity of the depth along r to frame j's pose perturbation xi_j
+    rj = r @ rel[:3, :3]
+    a = np.concatenate([np.cross(p_j, rj), rj], 1)
+    pose_var_t = ((a @ cov_j) * a).sum(1)
+    z = np.full(h * w, np.nan)
+    var = np.full(h * w, np.nan)
+    z[pix] = q[:, 2]
+    var[pix] = var_j.ravel()[flat_j] + pose_var_t * r[:, 2] ** 2
+    return z.reshape(h, w), var.reshape(h, w)
+
+
+def depth_targets(
+    sequence: RGBDSequence,
+    trajectory=None,
+    *,
+    poses: np.ndarray | None = None,
+    covariances: np.ndarray | None = None,
+    sensor: SensorNoise = SensorNoise(),
+    neighbors: int = 2,
+    consistency_sigmas: float = 3.0,
+    fill_min_views: int = 2,
+    storage_dir: str | Path | None = None,
+    progress: bool = True,
+) -> DepthTargets:
+    """Per-pixel Gaussian depth targets (z-depth mean and sigma, metres) for every frame.
+
+    trajectory: a :class:`~open3d_pnerf.tracking.Trajectory` (uses .poses, .covariances), or
+    give `poses` ((N, 4, 4) camera-to-world) and optionally `covariances` ((N, 6, 6),
+    [rotation, translation], right perturbation; zeros if omitted). neighbors: frames on
+    each side reprojected into a frame. consistency_sigmas: outlier gate. storage_dir: keep
+    the (N, H, W) arrays in .npy memory maps there instead of RAM (long sequences).
+    """
+    if trajectory is not None:
+        poses, covariances = trajectory.poses, trajectory.covariances
+    if poses is None:
+        raise InputError("depth_targets() needs a trajectory or poses=(N, 4, 4) camera-to-world")
+    n = len(sequence)
+    poses = check_poses(poses, n, "poses")
+    covs = np.zeros((n, 6, 6)) if covariances is None else np.asarray(covariances, np.float64)
+    if covs.shape != (n, 6, 6) or not np.isfinite(covs).all():
+        raise InputError(f"covariances must be finite with shape ({n}, 6, 6), got {covs.shape}")
+    if neighbors < 0 or consistency_sigmas <= 0 or fill_min_views < 1:
+        raise InputError("need neighbors >= 0, consistency_sigmas > 0 and fill_min_views >= 1")
+
+    h, w = sequence.image_size
+    K = sequence.K
+    rays = _unit_rays(K, h, w)
+    out = _allocate(n, h, w, storage_dir)
+    depths: dict[int, np.ndarray] = {}  # sliding window of loaded depth maps
+
+    def depth_of(k: int) -> np.ndarray:
+        if k not in depths:
+            depths[k] = sequence[k].depth
+        return depths[k]
+
+    for i in tqdm(range(n), desc="depth targets", disable=not progress, leave=False):
+        for k in [k for k in depths if k < i - neighbors]:
+            del depths[k]
+        z_i = depth_of(i).astype(np.float64)
+        obs_z, obs_var = [np.where(z_i > 0, z_i, np.nan)], [sensor.sigma(z_i) ** 2]
+        for j in range(max(0, i - neighbors), min(n, i + neighbors + 1)):
+            if j == i:
+                continue
+            z_j = depth_of(j)
+            z, var = reproject(z_j, sensor.sigma(z_j.astype(np.float64)) ** 2, poses[j], covs[j], poses[i], K, (h, w))
+            obs_z.append(z)
+            obs_var.append(var)
+        mean, var, support = _fuse(np.stack(obs_z), np.stack(obs_var), consistency_sigmas, fill_min_views)
+        valid = np.isfinite(mean)
+        var = var + _own_pose_var(rays, covs[i])
+        out.mean[i] = np.where(valid, mean, 0)
+        out.sigma[i] = np.where(valid, np.sqrt(var), 0)
+        out.valid[i] = valid
+        out.support[i] = support
+        out.filled[i] = valid & ~(z_i > 0)
+    return out
+
+
+def _fuse(z: np.ndarray, var: np.ndarray, gate: float, fill_min_views: int):
+    """Fuse (V, H, W) observations; index 0 is the frame's own depth (NaN = none).
+
+    Returns mean (NaN where no target), variance and support count per pixel.
+    """
+    own, own_var = z[0], var[0]
+    has_own = np.isfinite(own)
+    # reference: own depth where present, else the median of neighbour observations
+    ref = own.copy()
+    holes = ~has_own & np.isfinite(z[1:]).any(0)
+    ref[holes] = np.nanmedian(z[1:, holes], axis=0)
+    with np.errstate(all="ignore"):
+        ref_var = np.where(has_own, own_var, 0.0)
+        ok = np.isfinite(z) & (np.abs(z - ref) <= gate * np.sqrt(var + ref_var))
+        ok[0] = has_own
+        inv = np.where(ok, 1.0 / np.where(ok, var, 1.0), 0.0)
+        support = ok.sum(0)
+        total = inv.sum(0)
+        mean = (np.where(ok, z, 0.0) * inv).sum(0) / total
+        fused_var = 1.0 / total
+    enough = has_own | (support >= fill_min_views)
+    mean = np.where(enough & (total > 0), mean, np.nan)
+    return mean, np.where(np.isfinite(mean), fused_var, np.nan), np.where(enough, support, 0).astype(np.uint8)
+
+
+def _allocate(n: int, h: int, w: int, storage_dir) -> DepthTargets:
+    if storage_dir is None:
+        make = lambda name, dtype: np.zeros((n, h, w), dtype)  # noqa: E731
+    else:
+        folder = Path(storage_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+        make = lambda name, dtype: np.lib.format.open_memmap(  # noqa: E731
+            folder / f"{name}.npy", mode="w+", dtype=dtype, shape=(n, h, w)
+        )
+    return DepthTargets(
+        make("mean", np.float32),
+        make("sigma", np.float32),
+        make("valid", bool),
+        make("support", np.uint8),
+        make("filled", bool),
+    )

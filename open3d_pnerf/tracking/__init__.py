@@ -1,0 +1,27 @@
+"""Camera tracking: Open3D RGB-D odometry, loop closures, pose graph, pose covariances.
+
+    traj = track(sequence)            # Trajectory: poses (N,4,4), covariances (N,6,6), ...
+    absolute_trajectory_error(traj.poses, sequence.gt_poses)["rmse"]
+"""
+
+from .covariance import adjoint, edge_jacobians, pose_graph_covariances, pose_graph_hessian
+from .metrics import absolute_trajectory_error, rigid_alignment
+from .odometry import FrameRegistration, OdometryOptions, PairResult
+from .tracker import DEFAULT_POINT_NOISE_M, track
+from .trajectory import Edge, Trajectory
+
+__all__ = [
+    "DEFAULT_POINT_NOISE_M",
+    "Edge",
+    "FrameRegistration",
+    "OdometryOptions",
+    "PairResult",
+    "Trajectory",
+    "absolute_trajectory_error",
+    "adjoint",
+    "edge_jacobians",
+    "pose_graph_covariances",
+    "pose_graph_hessian",
+    "rigid_alignment",
+    "track",
+]

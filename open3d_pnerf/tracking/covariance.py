@@ -1,0 +1,142 @@
+"""Pose covariances from an Open3D pose graph: marginals of the pose-graph Hessian.
+
+Open3D returns no pose covariance. This module rebuilds the Gauss-Newton Hessian
+``H = sum_e c_e J_e^T Lambda_e J_e`` from ``pose_graph.edges``, fixes the reference node and
+reads the 6x6 diagonal blocks of ``s^2 H^-1``, where ``s`` is the per-correspondence noise
+(Open3D's information matrices are unscaled ``G^T G``; entry [5, 5] counts correspondences).
+
+Conventions (order [rotation(3), translation(3)] throughout):
+
+* a node pose ``T`` (camera-to-world) is perturbed on the right, ``T exp(xi)``, so ``xi``
+  is expressed in that camera's own frame;
+* an edge (source s, target t, transformation X mapping source-camera points into the
+  target camera) has the residual ``e = log(T_t^-1 T_s X^-1)``, a twist in the target
+  camera frame. This is the frame in which Open3D's RGB-D odometry builds its information
+  ``G^T G`` (``G = [-[q]x, I]`` with q the source points moved into the target camera).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import splu
+
+from ..errors import InputError
+
+# Right-hand sides solved at once when extracting diagonal blocks of H^-1 (memory bound).
+_SOLVE_CHUNK = 600
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(3, 3) cross-product matrix [v]x of a 3-vector."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """(6, 6) adjoint of a 4x4 rigid transform for [rotation, translation] twists.
+
+    ``T exp(xi) T^-1 = exp(adjoint(T) @ xi)``.
+    """
+    R, t = T[:3, :3], T[:3, 3]
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = R
+    ad[3:, 3:] = R
+    ad[3:, :3] = skew(t) @ R
+    return ad
+
+
+def edge_jacobians(pose_source: np.ndarray, pose_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians (J_s, J_t), each (6, 6), of ``e = log(T_t^-1 T_s X^-1)`` at e = 0.
+
+    With ``T_s exp(xi_s)`` and ``T_t exp(xi_t)``: ``e ~ e0 + J_s xi_s + J_t xi_t`` where
+    ``J_s = Ad(T_t^-1 T_s)`` and ``J_t = -I`` (first order; exact when the edge is consistent).
+    """
+    return adjoint(np.linalg.inv(pose_target) @ pose_source), -np.eye(6)
+
+
+def pose_graph_hessian(pose_graph: o3d.pipelines.registration.PoseGraph) -> sp.csc_matrix:
+    """(6N, 6N) sparse Gauss-Newton Hessian ``sum_e c_e J_e^T Lambda_e J_e`` of the graph.
+
+    Each edge is weighted by its ``confidence`` (Open3D's line-process weight: 1 for certain
+    edges, in (0, 1] for uncertain ones after ``global_optimization``).
+    """
+    n = len(pose_graph.nodes)
+    poses = np.stack([np.asarray(node.pose, dtype=np.float64) for node in pose_graph.nodes])
+    rows, cols, blocks = [], [], []
+    for k, edge in enumerate(pose_graph.edges):
+        s, t = edge.source_node_id, edge.target_node_id
+        if not (0 <= s < n and 0 <= t < n) or s == t:
+            raise InputError(f"pose_graph.edges[{k}] joins nodes {s} -> {t}; need two distinct nodes of {n}")
+        info = edge.confidence * np.asarray(edge.information, dtype=np.float64)
+        jac = dict(zip((s, t), edge_jacobians(poses[s], poses[t])))
+        for a in (s, t):
+            for b in (s, t):
+                rows.append(a)
+                cols.append(b)
+                blocks.append(jac[a].T @ info @ jac[b])
+    if not blocks:
+        return sp.csc_matrix((6 * n, 6 * n))
+    # Expand the 6x6 blocks to element triplets; duplicates are summed by the COO -> CSC step.
+    block_r, block_c = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
+    r = (6 * np.asarray(rows)[:, None, None] + block_r).ravel()
+    c = (6 * np.asarray(cols)[:, None, None] + block_c).ravel()
+    return sp.coo_matrix((np.stack(blocks).ravel(), (r, c)), shape=(6 * n, 6 * n)).tocsc()
+
+
+def pose_graph_covariances(
+    pose_graph: o3d.pipelines.registration.PoseGraph, point_noise_m: float, reference: int = 0
+) -> np.ndarray:
+    """(N, 6, 6) float64 covariances of the node poses, [rotation (rad^2), translation (m^2)].
+
+    The 6x6 diagonal blocks of ``point_noise_m^2 * H^-1`` with the reference node held fixed
+    (its covariance is zero). ``H`` is :func:`pose_graph_hessian`; the perturbation is
+    ``T exp(xi)`` (camera frame). point_noise_m: the noise of one correspondence (m) that
+    scales Open3D's unscaled information matrices. Every node must be connected to the
+    reference through edges, otherwise InputError names the unconnected nodes.
+    """
+    n = len(pose_graph.nodes)
+    if not point_noise_m > 0:
+        raise InputError(f"point_noise_m must be > 0 metres, got {point_noise_m!r}")
+    if not 0 <= reference < n:
+        raise InputError(f"reference must be a node index in [0, {n}), got {reference}")
+    hessian = pose_graph_hessian(pose_graph)
+    _check_connected(pose_graph, n, reference)
+    covariances = np.zeros((n, 6, 6))
+    free = np.array([i for i in range(n) if i != reference], dtype=int)
+    if free.size == 0:
+        return covariances
+    keep = (6 * free[:, None] + np.arange(6)).ravel()
+    try:
+        lu = splu(hessian[keep][:, keep].tocsc())
+    except RuntimeError:  # "Factor is exactly singular"
+        raise InputError(
+            "the pose-graph Hessian is singular: some node's pose is not fully constrained "
+            "(an edge information matrix is rank-deficient or zero)"
+        ) from None
+    dim = keep.size
+    for start in range(0, dim, _SOLVE_CHUNK):
+        stop = min(start + _SOLVE_CHUNK, dim)
+        rhs = np.zeros((dim, stop - start))
+        rhs[np.arange(start, stop), np.arange(stop - start)] = 1.0
+        cols = lu.solve(rhs)
+        for j in range(start // 6, stop // 6):
+            block = cols[6 * j : 6 * j + 6, 6 * j - start : 6 * j - start + 6]
+            covariances[free[j]] = 0.5 * (block + block.T)
+    return point_noise_m**2 * covariances
+
+
+def _check_connected(pose_graph, n: int, reference: int) -> None:
+    """Raise InputError naming the nodes with no edge path to the reference node."""
+    src = [e.source_node_id for e in pose_graph.edges]
+    dst = [e.target_node_id for e in pose_graph.edges]
+    adjacency = sp.coo_matrix((np.ones(len(src)), (src, dst)), shape=(n, n))
+    _, labels = connected_components(adjacency, directed=False)
+    lonely = np.flatnonzero(labels != labels[reference])
+    if lonely.size:
+        raise InputError(
+            f"pose graph nodes {lonely[:10].tolist()}{'...' if lonely.size > 10 else ''} have no "
+            f"edge path to the reference node {reference}; their covariance is unbounded"
+        )

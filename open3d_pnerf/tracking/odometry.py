@@ -1,0 +1,201 @@
+"""Verified RGB-D odometry between two frames of a sequence (Open3D tensor pipeline).
+
+``o3d.t.pipelines.odometry.rgbd_odometry_multi_scale`` (hybrid photometric + geometric
+loss) estimates the transformation X that maps source-camera points into the target
+camera (``p_target = X @ p_source``; measured against TUM/7-Scenes ground truth:
+``X ~ inv(pose_target) @ pose_source`` for camera-to-world poses). Open3D reports
+convergence but not whether the answer is right, so every result is checked: enough valid
+depth, a finite transformation, enough geometric overlap after alignment, and a plausible
+correction of the initial guess.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import OrderedDict
+
+import numpy as np
+import open3d as o3d
+
+from ..data.sequence import RGBDSequence
+from ..errors import InputError
+
+odometry = o3d.t.pipelines.odometry
+_METHODS = {
+    "hybrid": odometry.Method.Hybrid,
+    "point_to_plane": odometry.Method.PointToPlane,
+    "intensity": odometry.Method.Intensity,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class OdometryOptions:
+    """Settings of the pairwise RGB-D odometry and of its failure checks."""
+
+    method: str = "hybrid"
+    """Open3D odometry loss: "hybrid" (photometric + depth), "point_to_plane" or "intensity"."""
+    iterations: tuple[int, ...] = (20, 10, 5)
+    """Gauss-Newton iterations per pyramid level, finest level first."""
+    inlier_distance_m: float = 0.03
+    """A source point whose aligned 3D position lies within this distance of the target's
+    point at the same pixel is a correspondence (overlap test and information matrix)."""
+    min_overlap: float = 0.5
+    """Minimum fraction of the source's valid depth pixels that must find a correspondence.
+    Measured (3 cm): 0.72-0.95 for consecutive TUM / 7-Scenes frames, 0.34-0.88 for their
+    keyframe pairs; 7-Scenes every-10th-frame pairs (7 cm apart) that odometry gets wrong
+    by 3-30 cm: 0.1-0.82, about half of them below 0.5."""
+    min_valid_depth: float = 0.05
+    """Minimum fraction of pixels with valid depth (in (0, max_depth)) in both frames."""
+    max_translation_m: float = 0.3
+    """Largest plausible change of translation relative to the initial guess (m)."""
+    max_rotation_deg: float = 30.0
+    """Largest plausible change of rotation relative to the initial guess (degrees)."""
+
+    def criteria(self) -> list:
+        """Open3D convergence criteria, one per pyramid level."""
+        return [odometry.OdometryConvergenceCriteria(int(i)) for i in self.iterations]
+
+    def __post_init__(self):
+        if self.method not in _METHODS:
+            raise InputError(f"method must be one of {sorted(_METHODS)}, got {self.method!r}")
+        if not self.iterations or any(int(i) < 1 for i in self.iterations):
+            raise InputError(f"iterations must be positive integers per level, got {self.iterations!r}")
+        for name in ("inlier_distance_m", "max_translation_m", "max_rotation_deg"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0 <= self.min_overlap <= 1:
+            raise InputError(f"min_overlap must be in [0, 1], got {self.min_overlap!r}")
+        if not 0 < self.min_valid_depth <= 1:
+            raise InputError(f"min_valid_depth must be in (0, 1], got {self.min_valid_depth!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class PairResult:
+    """Outcome of registering a source frame to a target frame."""
+
+    transformation: np.ndarray
+    """(4, 4) float64, maps source-camera points into the target camera (metres)."""
+    information: np.ndarray
+    """(6, 6) float64 Open3D information G^T G ([rotation, translation]); [5, 5] = count."""
+    fitness: float
+    """Open3D's fraction of all pixels that were odometry inliers at the finest level."""
+    inlier_rmse: float
+    """Open3D's ``inlier_rmse`` of the odometry loss at the finest pyramid level."""
+    overlap: float
+    """Fraction of the source's valid depth pixels with a correspondence after alignment."""
+    success: bool
+    message: str = ""
+    """Why the registration was rejected ("" when it succeeded)."""
+
+
+class FrameRegistration:
+    """Registers frames of one sequence to each other, caching a few recently used images.
+
+    sequence: the RGB-D sequence. max_depth: depth beyond this (m) is ignored. device: an
+    ``o3d.core.Device`` or string such as "CPU:0" / "CUDA:0" (None = CPU:0).
+    """
+
+    def __init__(self, sequence: RGBDSequence, max_depth: float = 3.0, device=None, cache_size: int = 4):
+        if not max_depth > 0:
+            raise InputError(f"max_depth must be > 0 metres, got {max_depth!r}")
+        self.sequence = sequence
+        self.max_depth = float(max_depth)
+        self.device = _device(device)
+        self.intrinsic = o3d.core.Tensor(sequence.K)
+        self._cache: OrderedDict[int, tuple[o3d.t.geometry.RGBDImage, float]] = OrderedDict()
+        self._cache_size = cache_size
+
+    def image(self, index: int) -> tuple[o3d.t.geometry.RGBDImage, float]:
+        """Frame `index` as a tensor RGBD image (depth float32 m) and its valid-depth fraction."""
+        if index in self._cache:
+            self._cache.move_to_end(index)
+            return self._cache[index]
+        frame = self.sequence[index]
+        color = np.ascontiguousarray(self.sequence.color_on_depth_grid(frame.color))
+        depth = frame.depth
+        valid = float(np.mean((depth > 0) & (depth < self.max_depth)))
+        rgbd = o3d.t.geometry.RGBDImage(
+            o3d.t.geometry.Image(o3d.core.Tensor(color)), o3d.t.geometry.Image(o3d.core.Tensor(depth))
+        ).to(self.device)
+        self._cache[index] = (rgbd, valid)
+        if len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+        return rgbd, valid
+
+    def register(
+        self,
+        source: int,
+        target: int,
+        init: np.ndarray | None = None,
+        options: OdometryOptions = OdometryOptions(),
+    ) -> PairResult:
+        """Align frame `source` to frame `target`, starting from `init` (4x4, source->target).
+
+        Never raises for bad data: a failed registration comes back with success=False,
+        the initial guess as its transformation and the reason in ``message``.
+        """
+        init = np.eye(4) if init is None else np.asarray(init, dtype=np.float64)
+        (src, src_valid), (tgt, tgt_valid) = self.image(source), self.image(target)
+        failed = dict(transformation=init, information=np.zeros((6, 6)), success=False)
+        for which, valid in (("source", src_valid), ("target", tgt_valid)):
+            if valid < options.min_valid_depth:
+                return PairResult(
+                    **failed, fitness=0.0, inlier_rmse=np.inf, overlap=0.0,
+                    message=f"too few valid depth pixels in the {which} frame "
+                    f"({valid:.1%} < {options.min_valid_depth:.0%})",
+                )
+        try:
+            result = odometry.rgbd_odometry_multi_scale(
+                src, tgt, self.intrinsic, o3d.core.Tensor(init), depth_scale=1.0,
+                depth_max=self.max_depth, criteria_list=options.criteria(), method=_METHODS[options.method],
+            )
+            transformation = result.transformation.numpy().astype(np.float64)
+            if not np.isfinite(transformation).all():
+                raise RuntimeError("non-finite transformation")
+            information = odometry.compute_odometry_information_matrix(
+                src.depth, tgt.depth, self.intrinsic, o3d.core.Tensor(transformation),
+                options.inlier_distance_m, 1.0, self.max_depth,
+            ).numpy().astype(np.float64)
+        except RuntimeError as exc:  # Open3D raises on singular systems and empty images
+            return PairResult(
+                **failed, fitness=0.0, inlier_rmse=np.inf, overlap=0.0,
+                message=f"Open3D odometry failed ({str(exc).strip()})",
+            )
+        overlap = float(information[5, 5] / (src_valid * src.depth.rows * src.depth.columns))
+        moved_m, turned_deg = motion(np.linalg.inv(init) @ transformation)
+        message = ""
+        if overlap < options.min_overlap:
+            message = f"overlap {overlap:.2f} < min_overlap {options.min_overlap}"
+        elif moved_m > options.max_translation_m or turned_deg > options.max_rotation_deg:
+            message = (
+                f"implausible motion {moved_m:.3f} m / {turned_deg:.1f} deg from the initial guess "
+                f"(limits {options.max_translation_m} m / {options.max_rotation_deg} deg)"
+            )
+        return PairResult(
+            transformation=transformation if not message else init,
+            information=information,
+            fitness=float(result.fitness),
+            inlier_rmse=float(result.inlier_rmse),
+            overlap=overlap,
+            success=not message,
+            message=message,
+        )
+
+
+def motion(T: np.ndarray) -> tuple[float, float]:
+    """(translation in m, rotation angle in degrees) of a 4x4 rigid transform."""
+    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.arccos(cos)))
+
+
+def _device(device) -> o3d.core.Device:
+    if device is None:
+        return o3d.core.Device("CPU:0")
+    if isinstance(device, o3d.core.Device):
+        return device
+    if isinstance(device, str):
+        try:
+            return o3d.core.Device(device)
+        except RuntimeError:
+            raise InputError(f"device must look like 'CPU:0' or 'CUDA:0', got {device!r}") from None
+    raise InputError(f"device must be None, a string or an o3d.core.Device, got {type(device).__name__}")

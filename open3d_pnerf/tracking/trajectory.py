@@ -1,0 +1,62 @@
+"""Tracking results: the estimated trajectory with covariances and the registration log."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import open3d as o3d
+
+
+@dataclasses.dataclass(frozen=True)
+class Edge:
+    """One attempted registration of frame `source` to frame `target`.
+
+    kind: "odometry" (consecutive frames, or a fallback from an earlier frame after a
+    failure) or "loop" (a loop closure between keyframes). success: the result passed the
+    checks (and, for loops, survived global optimisation). fitness / inlier_rmse: Open3D's
+    odometry result. overlap: fraction of the source's valid depth pixels with a
+    correspondence after alignment. correspondences: entry [5, 5] of the information.
+    """
+
+    source: int
+    target: int
+    kind: str
+    success: bool
+    fitness: float
+    inlier_rmse: float
+    overlap: float
+    correspondences: int
+    message: str = ""
+
+
+@dataclasses.dataclass
+class Trajectory:
+    """Camera trajectory estimated by :func:`~open3d_pnerf.tracking.track`.
+
+    poses: (N, 4, 4) float64 camera-to-world in metres, frame 0 = identity.
+    covariances: (N, 6, 6) float64, [rotation (rad^2), translation (m^2)] of the right
+    perturbation ``pose @ exp(xi)`` (xi in the camera frame); zero for frame 0.
+    pose_graph: the optimised ``o3d.pipelines.registration.PoseGraph`` (node i = frame i).
+    edges: every attempted registration (see :class:`Edge`), including failed ones.
+    failed_frames: frames whose odometry from the previous frame failed; each got a
+    fallback (registration from an earlier frame, else a guessed pose with a huge covariance).
+    timestamps: (N,) float64 seconds, from the sequence.
+    """
+
+    poses: np.ndarray
+    covariances: np.ndarray
+    pose_graph: o3d.pipelines.registration.PoseGraph
+    edges: list[Edge]
+    failed_frames: list[int]
+    timestamps: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def __repr__(self) -> str:
+        loops = sum(e.kind == "loop" and e.success for e in self.edges)
+        return (
+            f"Trajectory({len(self)} poses, {loops} loop closures, "
+            f"failed frames {self.failed_frames})"
+        )

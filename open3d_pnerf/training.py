@@ -1,0 +1,315 @@
+"""Training: rays drawn from images on the fly, Adam with an exponential schedule, held-out
+evaluation, atomic checkpoints, clean stop on Ctrl-C and on a NaN loss."""
+
+from __future__ import annotations
+
+import os
+import time
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from .config import ReconstructionConfig
+from .data.sequence import RGBDSequence
+from .errors import CheckpointError, TrainingError
+from .losses import total_loss
+from .rendering import SamplingConfig, make_rays, render_rays
+from .targets import DepthTargets, ray_norms
+
+CHECKPOINT_VERSION = 1
+
+
+class RayBatcher:
+    """Draws random training rays from a bounded cache of decoded frames.
+
+    sequence: the training frames at training resolution; poses (N, 4, 4) camera-to-world;
+    targets: their DepthTargets (same resolution) or None. At most `cache_frames` frames
+    are decoded at a time; with more frames the cache rotates one frame every
+    `refresh_every` steps, in a seeded order, so memory stays bounded on long sequences.
+    """
+
+    def __init__(self, sequence: RGBDSequence, poses, targets: DepthTargets | None, aabb, device, seed: int,
+                 cache_frames: int = 64, refresh_every: int = 4):
+        self.sequence, self.targets, self.device = sequence, targets, device
+        self.poses = torch.as_tensor(np.asarray(poses), dtype=torch.float32, device=device)
+        self.K = torch.as_tensor(np.array(sequence.K), dtype=torch.float32, device=device)
+        self.aabb = aabb
+        self.height, self.width = sequence.image_size
+        self.norms = torch.as_tensor(ray_norms(sequence.K, self.height, self.width), device=device)
+        self.capacity = min(cache_frames, len(sequence))
+        self.refresh_every = refresh_every
+        self.order_rng = np.random.default_rng(seed)
+        self.queue: list[int] = []
+        self.cache: OrderedDict[int, tuple] = OrderedDict()
+        self.draws = 0
+        while len(self.cache) < self.capacity:
+            self._load(self._next_frame())
+
+    def _next_frame(self) -> int:
+        if not self.queue:
+            self.queue = [i for i in self.order_rng.permutation(len(self.sequence)) if i not in self.cache]
+        return int(self.queue.pop())
+
+    def _load(self, i: int) -> None:
+        frame = self.sequence[i]
+        color = torch.as_tensor(self.sequence.color_on_depth_grid(frame.color), device=self.device).float().div_(255).view(-1, 3)
+        if self.targets is not None:
+            valid = torch.as_tensor(np.asarray(self.targets.valid[i]), device=self.device).view(-1)
+            norms = self.norms.view(-1)
+            mean = torch.as_tensor(np.asarray(self.targets.mean[i]), device=self.device).view(-1) * norms
+            sigma = torch.as_tensor(np.asarray(self.targets.sigma[i]), device=self.device).view(-1) * norms
+            mean = torch.where(valid, mean, torch.full_like(mean, float("nan")))
+        else:
+            mean = sigma = None
+        self.cache[i] = (color, mean, sigma)
+
+    def sample(self, n: int, generator: torch.Generator):
+        """n random rays: (Rays, rgb (n, 3), target mean and sigma (n,) ray-distance, NaN = none)."""
+        self.draws += 1
+        if len(self.cache) < len(self.sequence) and self.draws % self.refresh_every == 0:
+            self.cache.popitem(last=False)
+            self._load(self._next_frame())
+        ids = list(self.cache)
+        which = torch.randint(len(ids), (n,), generator=generator)
+        pix = torch.randint(self.height * self.width, (n,), generator=generator)
+        frame_ids = torch.tensor(ids)[which]
+        rgb = torch.empty(n, 3, device=self.device)
+        mean = torch.full((n,), float("nan"), device=self.device)
+        sigma = torch.full((n,), float("nan"), device=self.device)
+        for slot, i in enumerate(ids):
+            sel = which == slot
+            if not sel.any():
+                continue
+            color, m, s = self.cache[i]
+            rgb[sel] = color[pix[sel]]
+            if m is not None:
+                mean[sel], sigma[sel] = m[pix[sel]], s[pix[sel]]
+        u = (pix % self.width).float().to(self.device)
+        v = (pix // self.width).float().to(self.device)
+        rays = make_rays(self.poses[frame_ids.to(self.device)], self.K, u, v, self.aabb)
+        return rays, rgb, mean, sigma
+
+    def state(self) -> dict:
+        return {"cache": list(self.cache), "queue": list(self.queue), "draws": self.draws,
+                "order_rng": self.order_rng.bit_generator.state}
+
+    def restore(self, state: dict) -> None:
+        self.cache.clear()
+        for i in state["cache"]:
+            self._load(int(i))
+        self.queue = [int(i) for i in state["queue"]]
+        self.draws = int(state["draws"])
+        self.order_rng.bit_generator.state = state["order_rng"]
+
+
+def sampling_of(config: ReconstructionConfig) -> SamplingConfig:
+    return SamplingConfig(config.n_coarse, config.n_fine, config.n_guided if config.loss != "photometric" else 0)
+
+
+class Trainer:
+    """Optimises a field on rays from a :class:`RayBatcher`.
+
+    eval_rays: optional (Rays, rgb) of held-out pixels scored every `config.eval_every`
+    steps. checkpoint_dir: where ``checkpoint.pt`` is written atomically.
+    """
+
+    def __init__(self, field, batcher: RayBatcher, config: ReconstructionConfig, eval_rays=None,
+                 checkpoint_dir: str | Path | None = None):
+        self.field, self.batcher, self.config = field, batcher, config
+        self.eval_rays = eval_rays
+        self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
+        fused = dict(fused=True) if _fused_adam_ok(field) else {}
+        self.optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15, **fused)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.sampling = sampling_of(config)
+        self.step = 0
+        self.elapsed = 0.0
+        self.history: list[dict] = []
+        self.samples_seen = 0
+
+    # -- schedule ------------------------------------------------------------------------
+    def _progress_fraction(self) -> float:
+        frac = self.step / self.config.max_steps
+        if self.config.time_budget_s:
+            frac = max(frac, self.elapsed / self.config.time_budget_s)
+        return min(frac, 1.0)
+
+    def _set_lr(self) -> None:
+        lr = self.config.lr * self.config.lr_final_factor ** self._progress_fraction()
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
+    def _done(self) -> bool:
+        if self.step >= self.config.max_steps:
+            return True
+        return bool(self.config.time_budget_s) and self.elapsed >= self.config.time_budget_s
+
+    # -- one step ------------------------------------------------------------------------
+    def train_step(self) -> dict:
+        rays, rgb, mean, sigma = self.batcher.sample(self.config.rays_per_batch, self.generator)
+        use_targets = self.config.loss != "photometric"
+        fine, coarse = render_rays(
+            self.field, rays, self.sampling,
+            mean if use_targets else None, sigma if use_targets else None,
+            self.generator, with_coarse=self.config.coarse_loss,
+        )
+        renders = [fine] + ([coarse] if coarse is not None else [])
+        terms = total_loss(self.config.loss, renders, rgb, mean, sigma, self.config.gains)
+        loss = terms["loss"]
+        if not torch.isfinite(loss):
+            raise TrainingError(
+                f"loss became {loss.item()} at step {self.step}; stopped. "
+                + (f"The last good checkpoint is {self.checkpoint_path}." if self.checkpoint_path
+                   and self.checkpoint_path.exists() else "No checkpoint was written.")
+                + " Try a lower lr."
+            )
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.samples_seen += fine.t.numel()
+        mse = ((fine.color.detach() - rgb) ** 2).mean()
+        return {"loss": float(loss.detach()), "psnr": float(-10 * torch.log10(mse.clamp(min=1e-10)))}
+
+    def evaluate(self) -> dict:
+        """PSNR (dB) and depth error of the held-out pixel set; {} without one."""
+        if self.eval_rays is None:
+            return {}
+        rays, rgb = self.eval_rays
+        out = render_field(self.field, rays, self.sampling)
+        mse = ((out["color"] - rgb) ** 2).mean()
+        return {"eval_psnr": float(-10 * torch.log10(mse.clamp(min=1e-10)))}
+
+    # -- loop --------------------------------------------------------------------------
+    @property
+    def checkpoint_path(self) -> Path | None:
+        return self.checkpoint_dir / "checkpoint.pt" if self.checkpoint_dir else None
+
+    def train(self) -> dict:
+        """Run until max_steps or the time budget. Ctrl-C finishes the step, checkpoints, stops.
+
+        Returns a summary: steps, seconds, samples_per_s, interrupted, last metrics.
+        """
+        cfg = self.config
+        bar = tqdm(total=cfg.max_steps, initial=self.step, desc="training", disable=not cfg.progress,
+                   leave=False, dynamic_ncols=True)
+        interrupted = False
+        stats: dict = {}
+        start_samples = self.samples_seen
+        start_time = time.perf_counter() - self.elapsed
+        run_start = time.perf_counter()
+        try:
+            while not self._done():
+                self._set_lr()
+                try:
+                    stats = self.train_step()
+                except KeyboardInterrupt:
+                    interrupted = True
+                self.step += 0 if interrupted else 1
+                self.elapsed = time.perf_counter() - start_time
+                if interrupted:
+                    break
+                bar.update(1)
+                if self.step % cfg.eval_every == 0 or self._done():
+                    stats.update(self.evaluate())
+                    self.history.append({"step": self.step, "seconds": round(self.elapsed, 2), **stats})
+                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}")
+                if self.checkpoint_dir and self.step % cfg.checkpoint_every == 0:
+                    self.save_checkpoint()
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            bar.close()
+        if self.checkpoint_dir:
+            self.save_checkpoint()
+        seconds = time.perf_counter() - run_start
+        return {
+            "steps": self.step,
+            "seconds": round(self.elapsed, 2),
+            "samples_per_s": round((self.samples_seen - start_samples) / max(seconds, 1e-9), 1),
+            "interrupted": interrupted,
+            **{k: round(v, 4) for k, v in stats.items()},
+        }
+
+    # -- checkpoints ---------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "version": CHECKPOINT_VERSION,
+            "step": self.step,
+            "elapsed": self.elapsed,
+            "samples_seen": self.samples_seen,
+            "field": self.field.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "batcher": self.batcher.state(),
+            "history": self.history,
+        }
+
+    def save_checkpoint(self) -> Path:
+        """Write checkpoint.pt atomically (temporary file, fsync, rename)."""
+        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        atomic_torch_save(self.state_dict(), self.checkpoint_path)
+        return self.checkpoint_path
+
+    def load_checkpoint(self, path: str | Path) -> None:
+        """Resume from a checkpoint written by :meth:`save_checkpoint` (weights_only load)."""
+        state = safe_torch_load(path)
+        if state.get("version") != CHECKPOINT_VERSION:
+            raise CheckpointError(
+                f"{path}: checkpoint version {state.get('version')!r}, this library reads {CHECKPOINT_VERSION}"
+            )
+        try:
+            self.field.load_state_dict(state["field"])
+            self.optimizer.load_state_dict(state["optimizer"])
+        except (RuntimeError, ValueError, KeyError) as exc:
+            raise CheckpointError(f"{path}: does not match this model/config ({exc})") from None
+        self.generator.set_state(state["generator"])
+        self.batcher.restore(state["batcher"])
+        self.step, self.elapsed = int(state["step"]), float(state["elapsed"])
+        self.samples_seen = int(state["samples_seen"])
+        self.history = list(state["history"])
+
+
+def _fused_adam_ok(field) -> bool:
+    p = next(field.parameters())
+    return p.device.type in ("cpu", "cuda") and p.dtype == torch.float32
+
+
+def atomic_torch_save(obj, path: Path) -> None:
+    """torch.save to a temporary file in the same folder, fsync, then rename over `path`."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        torch.save(obj, fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def safe_torch_load(path) -> dict:
+    """torch.load(weights_only=True): tensors and plain containers only, never code."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # unpickling errors, truncated files, foreign objects
+        raise CheckpointError(f"{path}: not a valid open3d_pnerf checkpoint ({type(exc).__name__}: {exc})") from None
+
+
+@torch.no_grad()
+def render_field(field, rays, sampling: SamplingConfig, chunk: int = 2048) -> dict:
+    """Render rays in chunks without gradient (deterministic mid-bin samples).
+
+    Returns color (R, 3), depth (R,) expected ray distance, depth_var (R,), opacity (R,).
+    """
+    outs = {"color": [], "depth": [], "depth_var": [], "opacity": []}
+    inference = SamplingConfig(sampling.n_coarse, sampling.n_fine + sampling.n_guided, 0)
+    for start in range(0, len(rays), chunk):
+        fine, _ = render_rays(field, rays[start : start + chunk], inference, jitter=False)
+        for k in outs:
+            outs[k].append(getattr(fine, k))
+    return {k: torch.cat(v) for k, v in outs.items()}
+
