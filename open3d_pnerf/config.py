@@ -40,6 +40,8 @@ class ReconstructionConfig:
     """Importance samples per ray drawn from the coarse weights (fine pass)."""
     n_guided: int = 16
     """Samples in mean +- 3 sigma of the depth target (extra importance samples without one)."""
+    depth_guided_sampling: bool = True
+    """Place the n_guided samples around the depth target (False: extra importance samples)."""
     lr: float = 1e-2
     """Initial Adam learning rate."""
     lr_final_factor: float = 0.05

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -113,7 +114,7 @@ class Reconstruction:
         pose = check_poses(np.asarray(pose)[None], 1, "pose")[0]
         intrinsic = check_intrinsic(intrinsic or self.intrinsic)
         h, w = intrinsic.height, intrinsic.width
-        K = torch.as_tensor(np.asarray(intrinsic.intrinsic_matrix), dtype=torch.float32, device=self.device)
+        K = torch.as_tensor(np.array(intrinsic.intrinsic_matrix), dtype=torch.float32, device=self.device)
         v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
         rays = make_rays(torch.as_tensor(pose, dtype=torch.float32, device=self.device), K,
                          u.reshape(-1).float(), v.reshape(-1).float(), self.field.aabb)
@@ -161,10 +162,15 @@ class Reconstruction:
             _atomic_write(d / f"{name}.npy", lambda fh, a=arr: np.save(fh, a))
         write_tum_trajectory(d / "trajectory_tum.txt", self.poses, self.timestamps)
         write_log_trajectory(d / "trajectory.log", self.poses)
-        if self.mesh is not None:
-            write_mesh_ply(d / "mesh.ply", self.mesh)
-        if self.point_cloud is not None:
-            write_point_cloud_ply(d / "point_cloud.ply", self.point_cloud, self.point_sigma)
+        for name, geometry, write in (
+            ("mesh.ply", self.mesh, lambda p: write_mesh_ply(p, self.mesh)),
+            ("point_cloud.ply", self.point_cloud, lambda p: write_point_cloud_ply(p, self.point_cloud, self.point_sigma)),
+        ):
+            if geometry is not None and not geometry.is_empty():
+                write(d / name)
+            else:
+                (d / name).unlink(missing_ok=True)  # never leave a stale file from an earlier run
+                warnings.warn(f"{name} not written: the model has no confident surface yet (train longer)")
         return d
 
     @classmethod

@@ -106,7 +106,8 @@ class RayBatcher:
 
 
 def sampling_of(config: ReconstructionConfig) -> SamplingConfig:
-    return SamplingConfig(config.n_coarse, config.n_fine, config.n_guided if config.loss != "photometric" else 0)
+    """Samples per ray; every loss gets the same count (guided ones become importance ones without targets)."""
+    return SamplingConfig(config.n_coarse, config.n_fine, config.n_guided)
 
 
 class Trainer:
@@ -150,10 +151,9 @@ class Trainer:
     # -- one step ------------------------------------------------------------------------
     def train_step(self) -> dict:
         rays, rgb, mean, sigma = self.batcher.sample(self.config.rays_per_batch, self.generator)
-        use_targets = self.config.loss != "photometric"
+        guide = self.config.loss != "photometric" and self.config.depth_guided_sampling
         fine, coarse = render_rays(
-            self.field, rays, self.sampling,
-            mean if use_targets else None, sigma if use_targets else None,
+            self.field, rays, self.sampling, mean if guide else None, sigma if guide else None,
             self.generator, with_coarse=self.config.coarse_loss,
         )
         renders = [fine] + ([coarse] if coarse is not None else [])

@@ -1,0 +1,118 @@
+"""Issue-3 benchmark: the probabilistic NeRF on the shared TUM fr1/xyz frames.
+
+Every 4th frame held out (frames 0, 4, 8, ...), poses from our tracking, `fast` preset
+(time budget per run), images at half resolution (320x240). Compares, at equal time:
+pnerf vs photometric vs dsnerf losses, depth-guided vs plain stratified+importance
+sampling, and the Open3D TSDF baseline fused from the same training frames and poses.
+Also measures training throughput of the grid, hashgrid and vanilla fields.
+
+    python benchmarks/bench_nerf.py [--budget 150] [--quick]
+
+Writes benchmarks/results/nerf.json and nerf.md.
+"""
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import open3d_pnerf as pn
+from open3d_pnerf.evaluation import heldout_scores
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+TUM = SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz"
+OUT = Path(__file__).resolve().parent / "results"
+
+
+def throughput(field: str, seq, poses, seconds: float = 20.0) -> float:
+    """Training samples/s of a field on the sequence (short run, same sampling)."""
+    cfg = pn.ReconstructionConfig.preset("fast", field=field, time_budget_s=seconds, max_steps=10**6,
+                                         holdout_every=4, progress=False)
+    recon_stats = _train_only(seq, poses, cfg)
+    return recon_stats["samples_per_s"]
+
+
+def _train_only(seq, poses, cfg):
+    from open3d_pnerf.reconstruction import build_field, scene_box, split_frames
+    from open3d_pnerf.training import RayBatcher, Trainer
+
+    train, _ = split_frames(len(seq), cfg.holdout_every)
+    ts = seq.select(train).rescaled(cfg.image_scale)
+    targets = pn.depth_targets(ts, poses=poses[train], progress=False)
+    field = build_field(cfg, scene_box(targets, poses[train], ts.K))
+    batcher = RayBatcher(ts, poses[train], targets, field.aabb, field.aabb.device, cfg.seed)
+    return Trainer(field, batcher, cfg).train()
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--budget", type=float, default=150.0, help="training seconds per run")
+    ap.add_argument("--quick", action="store_true", help="30 s runs (a smoke test of the script)")
+    args = ap.parse_args()
+    if not TUM.is_dir():
+        sys.exit(f"shared data not found: {TUM}")
+    budget = 30.0 if args.quick else args.budget
+    seq = pn.load_sequence(TUM)
+    t0 = time.perf_counter()
+    traj = pn.track(seq, progress=False)
+    tracking_s = time.perf_counter() - t0
+    ate = pn.absolute_trajectory_error(traj.poses, seq.gt_poses)["rmse"]
+    print(f"tracking: {len(seq)} frames in {tracking_s:.1f} s, ATE {1000 * ate:.1f} mm", flush=True)
+
+    runs = {
+        "pnerf": dict(loss="pnerf"),
+        "photometric": dict(loss="photometric"),
+        "dsnerf": dict(loss="dsnerf"),
+        "pnerf_no_guided_sampling": dict(loss="pnerf", depth_guided_sampling=False),
+    }
+    results = {}
+    tsdf_scores = None
+    for name, overrides in runs.items():
+        cfg = pn.ReconstructionConfig.preset("fast", time_budget_s=budget, max_steps=10**6, holdout_every=4,
+                                             progress=False, **overrides)
+        t = time.perf_counter()
+        recon = pn.reconstruct(seq, cfg, poses=traj.poses, covariances=traj.covariances)
+        wall = time.perf_counter() - t
+        if tsdf_scores is None:
+            train = seq.select(recon.train_indices).rescaled(cfg.image_scale)
+            volume = pn.tsdf_fusion(train, traj.poses[recon.train_indices], return_volume=True, progress=False)
+            tsdf_scores = heldout_scores(recon, seq, volume)["tsdf"]
+        scores = heldout_scores(recon, seq)["model"]
+        results[name] = {"scores": scores, "training": recon.stats["training"], "wall_s": round(wall, 1),
+                         "mesh_triangles": len(recon.mesh.triangles), "points": len(recon.point_cloud.points)}
+        print(f"{name}: PSNR {scores['psnr']:.2f} dB, depth L1 {1000 * scores['depth_l1']:.1f} mm, "
+              f"{recon.stats['training']['steps']} steps, wall {wall:.0f} s", flush=True)
+    print(f"tsdf: PSNR {tsdf_scores['psnr']:.2f} (hits {tsdf_scores['psnr_hits']:.2f}), "
+          f"depth L1 {1000 * tsdf_scores['depth_l1']:.1f} mm", flush=True)
+
+    speeds = {f: throughput(f, seq, traj.poses, 15.0 if args.quick else 30.0) for f in ("grid", "hashgrid", "vanilla")}
+    print("samples/s:", speeds, flush=True)
+    report = {
+        "machine": {"platform": platform.platform(), "cpus": torch.get_num_threads(), "torch": torch.__version__},
+        "dataset": "TUM fr1/xyz, 32 associated frames, every 4th held out (8), 320x240",
+        "budget_s": budget, "tracking": {"ate_rmse_mm": round(1000 * ate, 2), "seconds": round(tracking_s, 1)},
+        "runs": results, "tsdf": tsdf_scores, "samples_per_s": speeds,
+    }
+    OUT.mkdir(exist_ok=True)
+    (OUT / "nerf.json").write_text(json.dumps(report, indent=1))
+    rows = ["| run | held-out PSNR (dB) | SSIM | depth L1 (mm) | within 1 sigma | steps |", "| --- | --- | --- | --- | --- | --- |"]
+    for name, r in results.items():
+        s = r["scores"]
+        rows.append(f"| {name} | {s['psnr']:.2f} | {s['ssim']:.3f} | {1000 * s['depth_l1']:.1f} | "
+                    f"{s['within_1']:.2f} | {r['training']['steps']} |")
+    rows.append(f"| TSDF (all pixels / on its hits) | {tsdf_scores['psnr']:.2f} / {tsdf_scores['psnr_hits']:.2f} | "
+                f"{tsdf_scores['ssim']:.3f} | {1000 * tsdf_scores['depth_l1']:.1f} (hits) | - | - |")
+    speed = " / ".join(f"{k} {v / 1000:.0f}k" for k, v in speeds.items())
+    (OUT / "nerf.md").write_text("\n".join(rows) + f"\n\nTraining samples/s: {speed}. Budget {budget:.0f} s a run; "
+                                 f"{report['machine']}\n")
+    print((OUT / "nerf.md").read_text())
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=3)
+    main()

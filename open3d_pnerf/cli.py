@@ -1,0 +1,309 @@
+"""The `open3d-pnerf` command line: demo, reconstruct, track, tsdf, render.
+
+Errors a user can fix are printed as one line (`open3d-pnerf: error: ...`) with exit code 2;
+Ctrl-C exits with 130 after training has written its checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+EXIT_OK, EXIT_ERROR, EXIT_INTERRUPTED = 0, 2, 130
+
+
+def _frames(spec: str | None):
+    """'a:b:s' (python slice) or 'i,j,k' -> slice or list; None -> None."""
+    if not spec:
+        return None
+    from .errors import InputError
+
+    try:
+        if ":" in spec:
+            return slice(*[int(p) if p else None for p in spec.split(":")])
+        return [int(p) for p in spec.split(",")]
+    except ValueError:
+        raise InputError(f"--frames {spec!r}: expected 'start:stop:step' or 'i,j,k'") from None
+
+
+def _load(args):
+    from .data import load_sample, load_sequence
+
+    seq = load_sample() if args.data == "sample" else load_sequence(args.data, depth_trunc=args.depth_trunc)
+    frames = _frames(getattr(args, "frames", None))
+    if frames is not None:
+        seq = seq.select(np.arange(len(seq))[frames])
+    return seq
+
+
+def _config(args):
+    from .config import ReconstructionConfig
+
+    overrides = {k: v for k, v in {
+        "loss": args.loss, "field": args.field, "device": args.device, "max_steps": args.max_steps,
+        "time_budget_s": args.time_budget, "holdout_every": args.holdout_every, "seed": args.seed,
+        "image_scale": args.image_scale,
+    }.items() if v is not None}
+    overrides["progress"] = not args.quiet
+    return ReconstructionConfig.preset(args.preset, **overrides)
+
+
+def _poses_for(seq, args, out: Path, reuse: bool = False):
+    """(poses, covariances): GT if asked, else tracking (reused from out/tracking when resuming)."""
+    from .errors import InputError
+    from .tracking import track
+
+    if args.gt_poses:
+        if seq.gt_poses is None:
+            raise InputError(f"--gt-poses: {args.data} has no ground-truth poses")
+        return seq.gt_poses, np.zeros((len(seq), 6, 6))
+    cache = out / "tracking"
+    if reuse and (cache / "poses.npy").is_file():
+        return np.load(cache / "poses.npy"), np.load(cache / "covariances.npy")
+    traj = track(seq, progress=not args.quiet)
+    cache.mkdir(parents=True, exist_ok=True)
+    np.save(cache / "poses.npy", traj.poses)
+    np.save(cache / "covariances.npy", traj.covariances)
+    return traj.poses, traj.covariances
+
+
+def run_reconstruction(seq, config, out: Path, args, resume: bool = False) -> dict:
+    """Track (or reuse poses), train, export, compare with TSDF; write outputs + report.md."""
+    from .baselines import tsdf_fusion
+    from .evaluation import heldout_scores
+    from .export import write_mesh_ply
+    from .reconstruction import reconstruct
+    from .tracking import absolute_trajectory_error
+
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    poses, covs = _poses_for(seq, args, out, reuse=resume)
+    ate = None
+    if seq.gt_poses is not None and not args.gt_poses:
+        ate = absolute_trajectory_error(poses, seq.gt_poses)["rmse"]
+    tracking_s = time.perf_counter() - t0
+    recon = reconstruct(seq, config, poses=poses, covariances=covs, checkpoint_dir=out / "checkpoints", resume=resume)
+    recon.stats["timings"]["tracking_s"] = round(tracking_s, 2)
+    recon.save(out)
+    scores = {}
+    if len(recon.holdout_indices):
+        train = seq.select(recon.train_indices)
+        volume = tsdf_fusion(train.rescaled(train.image_scale * config.image_scale), poses[recon.train_indices],
+                             return_volume=True, progress=config.progress)
+        tsdf_mesh = volume.mesh()
+        if not tsdf_mesh.is_empty():
+            write_mesh_ply(out / "tsdf_mesh.ply", tsdf_mesh)
+        scores = heldout_scores(recon, seq, volume)
+    report = {"sequence": repr(seq), "frames": len(seq), "ate_rmse_m": ate, "scores": scores, **recon.stats}
+    (out / "report.json").write_text(json.dumps(report, indent=1, default=float))
+    (out / "report.md").write_text(_report_md(report, recon, out))
+    return report
+
+
+def _report_md(report: dict, recon, out: Path) -> str:
+    lines = [f"# open3d_pnerf reconstruction: {report['sequence']}", ""]
+    if report.get("ate_rmse_m") is not None:
+        lines.append(f"- Tracking ATE RMSE vs ground truth: {1000 * report['ate_rmse_m']:.1f} mm")
+    tr = report["training"]
+    lines += [
+        f"- Training: {tr['steps']} steps in {tr['seconds']} s, {tr['samples_per_s'] / 1000:.0f} k samples/s, "
+        f"loss {recon.config.loss}, field {recon.config.field}",
+        f"- Timings (s): {report['timings']}",
+        f"- Mesh: {len(recon.mesh.triangles)} triangles (`mesh.ply`); point cloud: {len(recon.point_cloud.points)} "
+        "points with per-point `depth_sigma` (`point_cloud.ply`)",
+        "",
+    ]
+    if report["scores"]:
+        lines += ["## Held-out frames", "", "| method | PSNR (dB) | PSNR on TSDF hits | SSIM | depth L1 (mm) |",
+                  "| --- | --- | --- | --- | --- |"]
+        for name, s in report["scores"].items():
+            hits = f"{s['psnr_hits']:.2f}" if "psnr_hits" in s else "-"
+            lines.append(f"| {name} | {s['psnr']:.2f} | {hits} | {s['ssim']:.3f} | {1000 * s['depth_l1']:.1f} |")
+        model = report["scores"]["model"]
+        lines += ["", f"Depth calibration (model): {model['within_1']:.2f} / {model['within_2']:.2f} / "
+                  f"{model['within_3']:.2f} of held-out errors within 1/2/3 predicted sigmas."]
+    return "\n".join(lines) + "\n"
+
+
+# -- commands ---------------------------------------------------------------------------------
+def cmd_demo(args) -> int:
+    from .data import load_sample
+
+    args.data, args.gt_poses = "sample", False
+    seq = load_sample()
+    config = _config(args)
+    report = run_reconstruction(seq, config, Path(args.out), args)
+    print((Path(args.out) / "report.md").read_text())
+    print(f"wrote {args.out}/mesh.ply, point_cloud.ply, tsdf_mesh.ply, report.md")
+    return EXIT_OK if report else EXIT_ERROR
+
+
+def cmd_reconstruct(args) -> int:
+    out = Path(args.resume or args.out)
+    config_path = out / "run_config.json"
+    if args.resume:
+        from .config import ReconstructionConfig
+        from .errors import CheckpointError
+
+        if not config_path.is_file():
+            raise CheckpointError(f"--resume {out}: no run_config.json there (not a reconstruct output folder)")
+        saved = json.loads(config_path.read_text())
+        config = ReconstructionConfig.from_dict(saved["config"])
+        for key in ("data", "frames", "gt_poses", "depth_trunc"):
+            setattr(args, key, saved[key])
+        seq = _load(args)
+    else:
+        seq = _load(args)
+        config = _config(args)
+        out.mkdir(parents=True, exist_ok=True)
+        config_path.write_text(json.dumps({"config": config.to_dict(), "data": str(args.data), "frames": args.frames,
+                                           "gt_poses": args.gt_poses, "depth_trunc": args.depth_trunc}, indent=1))
+    run_reconstruction(seq, config, out, args, resume=bool(args.resume))
+    if not args.quiet:
+        print((out / "report.md").read_text())
+    return EXIT_OK
+
+
+def cmd_track(args) -> int:
+    from .data import write_log_trajectory, write_tum_trajectory
+    from .tracking import absolute_trajectory_error, track
+
+    seq = _load(args)
+    traj = track(seq, progress=not args.quiet)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_tum_trajectory(out / "trajectory_tum.txt", traj.poses, seq.timestamps)
+    write_log_trajectory(out / "trajectory.log", traj.poses)
+    np.save(out / "poses.npy", traj.poses)
+    np.save(out / "covariances.npy", traj.covariances)
+    msg = f"tracked {len(seq)} frames; failed frames: {traj.failed_frames or 'none'}"
+    if seq.gt_poses is not None:
+        msg += f"; ATE RMSE {1000 * absolute_trajectory_error(traj.poses, seq.gt_poses)['rmse']:.1f} mm"
+    print(msg)
+    return EXIT_OK
+
+
+def cmd_tsdf(args) -> int:
+    from .baselines import tsdf_fusion
+    from .export import write_mesh_ply, write_point_cloud_ply
+
+    seq = _load(args)
+    out = Path(args.out)
+    poses, _ = _poses_for(seq, args, out)
+    volume = tsdf_fusion(seq, poses, voxel_size=args.voxel_size, sdf_trunc=4 * args.voxel_size,
+                         return_volume=True, progress=not args.quiet)
+    write_mesh_ply(out / "mesh.ply", volume.mesh())
+    write_point_cloud_ply(out / "point_cloud.ply", volume.point_cloud())
+    print(f"wrote {out}/mesh.ply and point_cloud.ply")
+    return EXIT_OK
+
+
+def cmd_render(args) -> int:
+    import cv2
+
+    from .errors import InputError
+    from .reconstruction import Reconstruction
+
+    recon = Reconstruction.load(args.dir)
+    if args.pose.isdigit():
+        index = int(args.pose)
+        if not 0 <= index < len(recon.poses):
+            raise InputError(f"--pose {index}: the reconstruction has frames 0..{len(recon.poses) - 1}")
+        pose = recon.poses[index]
+    else:
+        path = Path(args.pose)
+        if not path.is_file():
+            raise InputError(f"--pose {args.pose}: neither a frame index nor a 4x4 matrix text file")
+        pose = np.loadtxt(path)
+    out = recon.render(pose)
+    target = Path(args.out)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(target), cv2.cvtColor((out["color"] * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+    stem = target.with_suffix("")
+    cv2.imwrite(f"{stem}_depth.png", (out["depth"] * 1000).round().clip(0, 65535).astype(np.uint16))
+    cv2.imwrite(f"{stem}_depth_std.png", (out["depth_std"] * 1000).round().clip(0, 65535).astype(np.uint16))
+    print(f"wrote {target}, {stem}_depth.png and {stem}_depth_std.png (16-bit, millimetres)")
+    return EXIT_OK
+
+
+def _add_training_options(p):
+    p.add_argument("--preset", default="fast", choices=["fast", "quality", "test"], help="configuration preset")
+    p.add_argument("--loss", choices=["pnerf", "photometric", "dsnerf"], help="training loss (default pnerf)")
+    p.add_argument("--field", choices=["grid", "hashgrid", "vanilla"], help="scene field (default grid)")
+    p.add_argument("--device", help="torch device: cpu, cuda, cuda:1 (default cpu)")
+    p.add_argument("--max-steps", type=int, help="optimiser steps")
+    p.add_argument("--time-budget", type=float, help="training time budget in seconds")
+    p.add_argument("--holdout-every", type=int, help="hold out every k-th frame for evaluation")
+    p.add_argument("--image-scale", type=float, help="training image scale in (0, 1]")
+    p.add_argument("--seed", type=int, help="random seed")
+
+
+def _add_data_options(p, data=True):
+    if data:
+        p.add_argument("data", help="dataset folder (TUM, 7-Scenes, Open3D/Redwood) or 'sample'")
+    p.add_argument("--frames", help="frames to use: 'start:stop:step' or 'i,j,k'")
+    p.add_argument("--depth-trunc", type=float, default=0.0, help="drop depth beyond this (m)")
+    p.add_argument("--gt-poses", action="store_true", help="use the dataset's ground-truth poses, skip tracking")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="open3d-pnerf", description="Probabilistic NeRF mapping from RGB-D (Open3D).")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("demo", help="reconstruct the bundled TUM sample and compare with TSDF (the README's main command)")
+    p.add_argument("--out", default="out/demo", help="output folder")
+    _add_training_options(p)
+    p.set_defaults(func=cmd_demo, holdout_every=4)
+
+    p = sub.add_parser("reconstruct", help="track, train the probabilistic NeRF, export mesh/point cloud/report")
+    p.add_argument("data", nargs="?", help="dataset folder or 'sample'")
+    p.add_argument("--out", default="out/reconstruction", help="output folder")
+    p.add_argument("--resume", metavar="DIR", help="continue an interrupted run in DIR from its last checkpoint")
+    _add_data_options(p, data=False)
+    _add_training_options(p)
+    p.set_defaults(func=cmd_reconstruct)
+
+    p = sub.add_parser("track", help="RGB-D odometry + pose graph: trajectory (TUM, .log) and covariances")
+    _add_data_options(p)
+    p.add_argument("--out", required=True, help="output folder")
+    p.set_defaults(func=cmd_track)
+
+    p = sub.add_parser("tsdf", help="Open3D TSDF fusion baseline: mesh.ply and point_cloud.ply")
+    _add_data_options(p)
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--voxel-size", type=float, default=0.01, help="voxel size (m)")
+    p.set_defaults(func=cmd_tsdf)
+
+    p = sub.add_parser("render", help="render colour, depth and depth-sigma from a saved reconstruction")
+    p.add_argument("dir", help="a reconstruct output folder")
+    p.add_argument("--pose", required=True, help="frame index, or a text file with a 4x4 camera-to-world matrix")
+    p.add_argument("--out", required=True, help="output PNG (depth and sigma written beside it)")
+    p.set_defaults(func=cmd_render)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "reconstruct" and not (args.data or args.resume):
+        parser.error("reconstruct needs DATA or --resume DIR")
+    from .errors import PNeRFError
+
+    try:
+        return args.func(args)
+    except PNeRFError as exc:
+        print(f"open3d-pnerf: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("open3d-pnerf: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,64 @@
+"""Shared fixtures: the ../shared/data location, the bundled sample, a synthetic plane scene."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+# Same location as tests/test_tracking.py uses (the repository's sibling folder shared/data).
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """Path of ../shared/data; skips the test when it is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data not found at {SHARED_DATA}")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def sample():
+    """The bundled 11-frame TUM fr1/xyz sample (loaded once; frames stay lazy)."""
+    from open3d_pnerf.data import load_sample
+
+    return load_sample()
+
+
+# -- a fronto-parallel plane seen by cameras translated along x -------------------------
+PLANE_W, PLANE_H, PLANE_F = 64, 48, 50.0
+PLANE_CX, PLANE_CY = 32.0, 24.0  # integer principal point: the centre pixel's ray is (0, 0, 1)
+
+
+def plane_intrinsic() -> o3d.camera.PinholeCameraIntrinsic:
+    return o3d.camera.PinholeCameraIntrinsic(PLANE_W, PLANE_H, PLANE_F, PLANE_F, PLANE_CX, PLANE_CY)
+
+
+def make_plane_scene(z0: float = 2.0, shifts=(-0.04, 0.0, 0.04), color=(200, 100, 50)):
+    """(depths, colors, poses) of the world plane z = z0 seen by identity-rotation cameras at
+    x = shifts. With the defaults a step of 0.04 m moves the plane by fx * 0.04 / z0 = 1 px."""
+    poses = np.tile(np.eye(4), (len(shifts), 1, 1))
+    poses[:, 0, 3] = shifts
+    depths = [np.full((PLANE_H, PLANE_W), z0, np.float32) for _ in shifts]
+    colors = [np.full((PLANE_H, PLANE_W, 3), color, np.uint8) for _ in shifts]
+    return depths, colors, poses
+
+
+@pytest.fixture(scope="session")
+def plane_scene():
+    """Factory: plane_scene(z0=..., shifts=..., depths=None) -> (RGBDSequence, poses).
+
+    `edit(depths)` may modify the list of float32 depth maps before the sequence is built."""
+    from open3d_pnerf.data import RGBDSequence
+
+    def build(z0: float = 2.0, shifts=(-0.04, 0.0, 0.04), edit=None, color=(200, 100, 50)):
+        depths, colors, poses = make_plane_scene(z0, shifts, color)
+        if edit is not None:
+            edit(depths)
+        seq = RGBDSequence.from_rgbd_images(list(zip(colors, depths)), plane_intrinsic(), gt_poses=poses)
+        return seq, poses
+
+    return build

@@ -1,0 +1,702 @@
+"""Tests of open3d_pnerf.data: the RGBDSequence model and the TUM / 7-Scenes / Redwood readers."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial.transform import Rotation
+
+import open3d_pnerf.data.sequence as sequence_module
+from open3d_pnerf.data import (
+    SAMPLE_DIR,
+    RGBDSequence,
+    check_poses,
+    load_sample,
+    load_sequence,
+    read_log_trajectory,
+    write_log_trajectory,
+    write_tum_trajectory,
+)
+from open3d_pnerf.errors import DatasetError, InputError, PoseError
+
+
+# -- helpers --------------------------------------------------------------------------------
+def write_rgb(path: Path, rgb: np.ndarray) -> None:
+    """Write an RGB uint8 image (OpenCV wants BGR)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1]))
+
+
+def write_depth(path: Path, raw: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert raw.dtype == np.uint16
+    assert cv2.imwrite(str(path), raw)
+
+
+def rigid(rotvec, t) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    pose[:3, 3] = t
+    return pose
+
+
+def pinhole(w, h, fx, fy, cx, cy):
+    return o3d.camera.PinholeCameraIntrinsic(w, h, fx, fy, cx, cy)
+
+
+# -- tiny TUM folder ------------------------------------------------------------------------
+TUM_W, TUM_H = 640, 480  # the TUM reader assumes the Kinect's 640x480
+TUM_RGB = [1.0, 1.25, 1.5, 2.0]  # 1.25 has no depth within 0.02 s: dropped by association
+TUM_DEPTH = [1.004, 1.512, 1.996, 3.0]  # 3.0 has no colour: dropped as well
+TUM_RAW = {1.0: 5000, 1.5: 7500, 2.0: 10000}  # depth PNG values of the matched frames (x/5000 m)
+
+
+def make_tum(root: Path, groundtruth: str | None = None) -> Path:
+    for k, t in enumerate(TUM_RGB):
+        write_rgb(root / "rgb" / f"{t:.6f}.png", np.full((TUM_H, TUM_W, 3), (10 * (k + 1), 0, 255), np.uint8))
+    for t_d in TUM_DEPTH:
+        t_rgb = min(TUM_RAW, key=lambda t: abs(t - t_d))
+        raw = TUM_RAW[t_rgb] if abs(t_rgb - t_d) < 0.02 else 1234
+        write_depth(root / "depth" / f"{t_d:.6f}.png", np.full((TUM_H, TUM_W), raw, np.uint16))
+    (root / "rgb.txt").write_text(
+        "# color images\n# timestamp filename\n" + "".join(f"{t:.6f} rgb/{t:.6f}.png\n" for t in TUM_RGB)
+    )
+    (root / "depth.txt").write_text("# depth maps\n" + "".join(f"{t:.6f} depth/{t:.6f}.png\n" for t in TUM_DEPTH))
+    if groundtruth is not None:
+        (root / "groundtruth.txt").write_text(groundtruth)
+    return root
+
+
+GT_POSE_A = rigid([0, 0, 0], [0.0, 0.0, 0.0])
+GT_POSE_B = rigid([0, 0, np.pi / 2], [1.0, 2.0, 3.0])
+
+
+def gt_text(poses, stamps) -> str:
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for t, p in zip(stamps, poses):
+        q = Rotation.from_matrix(p[:3, :3]).as_quat()
+        lines.append(f"{t} " + " ".join(f"{v:.9f}" for v in (*p[:3, 3], *q)))
+    return "\n".join(lines) + "\n"
+
+
+@pytest.fixture
+def tum_dir(tmp_path) -> Path:
+    return make_tum(tmp_path / "rgbd_dataset_freiburg1_tiny", gt_text([GT_POSE_A, GT_POSE_B], [0.5, 2.5]))
+
+
+def test_tum_association_depth_scale_and_intrinsic(tum_dir):
+    seq = load_sequence(tum_dir)
+    assert len(seq) == 3  # 1.25 (no depth) and depth 3.0 (no colour) are not associated
+    np.testing.assert_array_equal(seq.timestamps, [1.0, 1.5, 2.0])  # colour timestamps
+    for i, t in enumerate([1.0, 1.5, 2.0]):
+        frame = seq[i]
+        assert frame.index == i and frame.timestamp == t
+        assert frame.depth.dtype == np.float32 and frame.depth.shape == (TUM_H, TUM_W)
+        # 16-bit PNG / 5000 = metres, exactly for these values
+        assert np.all(frame.depth == TUM_RAW[t] / 5000.0)
+        assert frame.color.dtype == np.uint8 and frame.color.shape == (TUM_H, TUM_W, 3)
+    # colour is RGB (written as BGR by OpenCV) and belongs to the associated file
+    assert tuple(seq[0].color[0, 0]) == (10, 0, 255)
+    assert tuple(seq[1].color[0, 0]) == (30, 0, 255)  # rgb k=2 (1.5), not k=1 (1.25)
+    # "freiburg1" in the folder name selects the fr1 calibration
+    fx, fy = seq.intrinsic.get_focal_length()
+    assert (fx, fy) == pytest.approx((517.3, 516.5))
+    assert seq.intrinsic.get_principal_point() == pytest.approx((318.6, 255.3))
+    assert seq.image_size == (480, 640)
+
+
+def test_tum_groundtruth_is_interpolated_at_colour_timestamps(tum_dir):
+    seq = load_sequence(tum_dir)
+    assert seq.gt_poses.shape == (3, 4, 4)
+    # frame timestamps 1.0, 1.5, 2.0 between gt 0.5 and 2.5: fractions 0.25, 0.5, 0.75
+    for pose, s in zip(seq.gt_poses, [0.25, 0.5, 0.75]):
+        np.testing.assert_allclose(pose[:3, 3], s * np.array([1.0, 2.0, 3.0]), atol=1e-9)
+        expected = Rotation.from_rotvec([0, 0, s * np.pi / 2]).as_matrix()  # slerp
+        np.testing.assert_allclose(pose[:3, :3], expected, atol=1e-7)
+        np.testing.assert_array_equal(pose[3], [0, 0, 0, 1])
+
+
+def test_tum_groundtruth_not_covering_frames_warns_and_drops_poses(tmp_path):
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg1_x", gt_text([GT_POSE_A, GT_POSE_B], [1.2, 2.5]))
+    with pytest.warns(UserWarning, match="groundtruth.txt"):
+        seq = load_sequence(root)
+    assert seq.gt_poses is None
+
+
+def test_tum_unknown_camera_warns_default_and_explicit_intrinsic_wins(tmp_path):
+    root = make_tum(tmp_path / "mystery_camera")
+    with pytest.warns(UserWarning, match="unknown TUM camera"):
+        seq = load_sequence(root)
+    assert seq.intrinsic.get_focal_length() == pytest.approx((525.0, 525.0))
+    assert seq.intrinsic.get_principal_point() == pytest.approx((319.5, 239.5))
+    assert seq.gt_poses is None  # no groundtruth.txt
+    mine = pinhole(640, 480, 600.0, 610.0, 300.0, 200.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        seq = load_sequence(root, intrinsic=mine)
+    np.testing.assert_allclose(seq.K, [[600, 0, 300], [0, 610, 200], [0, 0, 1]])
+
+
+def test_tum_unassociable_timestamps(tmp_path):
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg1_bad")
+    (root / "depth.txt").write_text("".join(f"{t + 10:.6f} depth/{t:.6f}.png\n" for t in TUM_DEPTH))
+    with pytest.raises(DatasetError, match="associate") as info:
+        load_sequence(root)
+    assert str(root) in str(info.value)
+
+
+def test_tum_empty_list_names_the_file(tmp_path):
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg1_empty")
+    (root / "rgb.txt").write_text("# only comments\n")
+    with pytest.raises(DatasetError, match="lists no entries") as info:
+        load_sequence(root)
+    assert str(root / "rgb.txt") in str(info.value)
+
+
+@pytest.mark.xfail(
+    reason="loaders.py:132 _timestamped_files indexes r[1] unchecked: a line without a "
+    "filename raises a bare IndexError instead of DatasetError naming rgb.txt",
+    strict=True,
+)
+def test_tum_list_line_without_filename(tmp_path):
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg1_short")
+    (root / "rgb.txt").write_text("1.000000\n")
+    with pytest.raises(DatasetError) as info:
+        load_sequence(root)
+    assert "rgb.txt" in str(info.value)
+
+
+@pytest.mark.xfail(
+    reason="loaders.py:175 _interpolate_tum_groundtruth converts with float() / np.array "
+    "unguarded: a non-numeric or ragged groundtruth.txt raises a bare ValueError that does "
+    "not name the file",
+    strict=True,
+)
+@pytest.mark.parametrize("bad", ["0.5 0 0 0 0 0 0 1\nabc 0 0 0 0 0 0 1\n", "0.5 0 0 0 0 0 0 1\n2.5 0 0 0 0 0 1\n"])
+def test_tum_malformed_groundtruth_names_the_file(tmp_path, bad):
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg1_gt", bad)
+    with pytest.raises(DatasetError) as info:
+        load_sequence(root)
+    assert "groundtruth.txt" in str(info.value)
+
+
+def test_tum_trajectory_round_trip_through_groundtruth(tmp_path):
+    # write_tum_trajectory -> groundtruth.txt -> the TUM reader interpolates at the exact
+    # stamps -> the same poses (to the 7 written decimals)
+    poses = np.stack([rigid([0.1, -0.2, 0.3], [0.5, -1.0, 2.0]), rigid([-0.4, 0.2, 1.0], [1.5, 0.25, -0.5]),
+                      rigid([0.0, 0.0, -2.5], [0.0, 0.0, 1.0])])
+    stamps = np.array([1.0, 1.5, 2.0])
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg1_rt")
+    write_tum_trajectory(root / "groundtruth.txt", poses, stamps)
+    text = (root / "groundtruth.txt").read_text().splitlines()
+    assert text[0].startswith("#") and len(text) == 4
+    first = np.array(text[1].split(), dtype=float)
+    assert first[0] == 1.0 and np.allclose(first[1:4], [0.5, -1.0, 2.0])
+    # quaternion is x y z w (TUM order)
+    q = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_quat()
+    assert np.allclose(first[4:], q, atol=1e-6) or np.allclose(first[4:], -q, atol=1e-6)
+    seq = load_sequence(root)
+    np.testing.assert_allclose(seq.gt_poses, poses, atol=1e-6)
+
+
+# -- tiny 7-Scenes folder -------------------------------------------------------------------
+def make_seven_scenes(root: Path, n: int = 2) -> tuple[Path, np.ndarray]:
+    root.mkdir(parents=True)
+    poses = []
+    for k in range(n):
+        raw = np.full((480, 640), 1500 + 500 * k, np.uint16)
+        raw[:10, :20] = 65535  # 7-Scenes' invalid marker
+        write_depth(root / f"frame-{k:06d}.depth.png", raw)
+        write_rgb(root / f"frame-{k:06d}.color.png", np.full((480, 640, 3), (0, 50 * k, 100), np.uint8))
+        pose = rigid([0.0, 0.1 * k, 0.0], [0.2 * k, 0.0, -0.1])
+        np.savetxt(root / f"frame-{k:06d}.pose.txt", pose)
+        poses.append(pose)
+    np.savetxt(root / "camera-intrinsics.txt", [[580.0, 0, 321.0], [0, 590.0, 239.0], [0, 0, 1]])
+    return root, np.stack(poses)
+
+
+def test_seven_scenes_reader(tmp_path):
+    root, poses = make_seven_scenes(tmp_path / "kitchen")
+    seq = load_sequence(root)
+    assert len(seq) == 2
+    np.testing.assert_allclose(seq.gt_poses, poses, atol=1e-12)
+    np.testing.assert_allclose(seq.K, [[580, 0, 321], [0, 590, 239], [0, 0, 1]])
+    for k in range(2):
+        depth = seq[k].depth
+        assert np.all(depth[:10, :20] == 0)  # 65535 -> invalid
+        assert np.all(depth[10:] == (1500 + 500 * k) / 1000.0)  # depth scale 1000
+        assert tuple(seq[k].color[100, 100]) == (0, 50 * k, 100)
+    np.testing.assert_array_equal(seq.timestamps, [0.0, 1.0])  # frame numbers
+    # colour is not registered to depth: its own intrinsic (0.905 x focal, -7 px in x)
+    ci = seq.color_intrinsic
+    assert ci.get_focal_length() == pytest.approx((580 * 0.905, 590 * 0.905))
+    assert ci.get_principal_point() == pytest.approx((321 - 7.0, 239))
+    assert not np.allclose(np.asarray(ci.intrinsic_matrix), seq.K)
+    # to_open3d resamples colour onto the depth grid (uniform colour stays uniform inside)
+    rgbd = seq.to_open3d(1)
+    assert np.asarray(rgbd.color).shape == (480, 640, 3)
+    assert tuple(np.asarray(rgbd.color)[240, 320]) == (0, 50, 100)
+    assert np.asarray(rgbd.depth)[240, 320] == pytest.approx(2.0)
+
+
+def test_seven_scenes_missing_colour_names_the_frame(tmp_path):
+    root, _ = make_seven_scenes(tmp_path / "kitchen")
+    (root / "frame-000001.color.png").unlink()
+    with pytest.raises(DatasetError, match="frame-000001"):
+        load_sequence(root)
+
+
+def test_seven_scenes_bad_pose_file(tmp_path):
+    root, _ = make_seven_scenes(tmp_path / "kitchen")
+    (root / "frame-000001.pose.txt").write_text("1 0 0\n0 1 0\n0 0 1\n")
+    with pytest.raises(DatasetError, match="4x4") as info:
+        load_sequence(root)
+    assert "frame-000001.pose.txt" in str(info.value)
+
+
+def test_seven_scenes_missing_pose_leaves_gt_out(tmp_path):
+    root, _ = make_seven_scenes(tmp_path / "kitchen")
+    (root / "frame-000000.pose.txt").unlink()
+    assert load_sequence(root).gt_poses is None
+
+
+# -- tiny Open3D / Redwood folder ---------------------------------------------------------
+RW_W, RW_H = 40, 30
+
+
+def make_redwood(root: Path, n: int = 3, depth_scale: float | None = 2000.0, raw=3000) -> tuple[Path, np.ndarray]:
+    for k in range(n):
+        write_rgb(root / "color" / f"{k:05d}.png", np.full((RW_H, RW_W, 3), (k, 2 * k, 3 * k), np.uint8))
+        write_depth(root / "depth" / f"{k:05d}.png", np.full((RW_H, RW_W), raw, np.uint16))
+    K = np.array([[45.0, 0, 19.5], [0, 47.0, 14.0], [0, 0, 1]])
+    data = {"width": RW_W, "height": RW_H, "intrinsic_matrix": K.T.ravel().tolist()}  # column-major
+    if depth_scale is not None:
+        data["depth_scale"] = depth_scale
+    (root / "camera.json").write_text(json.dumps(data))
+    poses = np.stack([rigid([0.05 * k, 0.1, -0.2 * k], [k, 0.5, -0.25 * k]) for k in range(n)])
+    write_log_trajectory(root / "traj.log", poses)
+    return root, poses
+
+
+def test_redwood_reader(tmp_path):
+    root, poses = make_redwood(tmp_path / "rw")
+    seq = load_sequence(root)
+    assert len(seq) == 3 and seq.image_size == (RW_H, RW_W)
+    # column-major JSON: cx, cy land in the last column, not the last row
+    np.testing.assert_allclose(seq.K, [[45.0, 0, 19.5], [0, 47.0, 14.0], [0, 0, 1]])
+    assert np.all(seq[1].depth == 1.5)  # 3000 / depth_scale 2000 from the JSON
+    assert tuple(seq[2].color[0, 0]) == (2, 4, 6)
+    np.testing.assert_allclose(seq.gt_poses, poses, atol=1e-9)
+    np.testing.assert_array_equal(seq.timestamps, [0, 1, 2])
+    # registered: the colour intrinsic is the depth one
+    np.testing.assert_array_equal(np.asarray(seq.color_intrinsic.intrinsic_matrix), seq.K)
+
+
+def test_redwood_depth_scale_default_and_override(tmp_path):
+    root, _ = make_redwood(tmp_path / "rw", depth_scale=None, raw=1500)
+    assert np.all(load_sequence(root)[0].depth == 1.5)  # default 1000
+    assert np.all(load_sequence(root, depth_scale=3000)[0].depth == 0.5)  # explicit wins
+
+
+def test_redwood_log_length_mismatch_warns(tmp_path):
+    root, poses = make_redwood(tmp_path / "rw")
+    write_log_trajectory(root / "traj.log", poses[:2])
+    with pytest.warns(UserWarning, match="2 poses for 3 frames"):
+        seq = load_sequence(root)
+    assert seq.gt_poses is None
+
+
+def test_redwood_colour_depth_count_mismatch(tmp_path):
+    root, _ = make_redwood(tmp_path / "rw")
+    (root / "color" / "00002.png").unlink()
+    with pytest.raises(DatasetError, match="2 colour images") as info:
+        load_sequence(root)
+    assert str(root) in str(info.value)
+
+
+@pytest.mark.xfail(
+    reason="loaders.py:285 _find_intrinsic_json warns 'using the PrimeSense default' even "
+    "when the caller passed intrinsic= (the default is then not used; the TUM reader only "
+    "warns when intrinsic is None)",
+    strict=True,
+)
+def test_redwood_no_warning_when_intrinsic_given(tmp_path):
+    root, _ = make_redwood(tmp_path / "rw")
+    (root / "camera.json").unlink()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        seq = load_sequence(root, intrinsic=pinhole(RW_W, RW_H, 40.0, 40.0, 19.5, 14.5))
+    assert seq.intrinsic.get_focal_length() == pytest.approx((40.0, 40.0))
+
+
+def test_log_trajectory_round_trip(tmp_path):
+    poses = np.stack([rigid([0.3, -0.1, 0.2], [1.25, -2.5, 0.125]), rigid([0, 0, 0], [0, 0, 0])])
+    write_log_trajectory(tmp_path / "t.log", poses)
+    lines = (tmp_path / "t.log").read_text().splitlines()
+    assert len(lines) == 10 and lines[0].split() == ["0", "0", "1"] and lines[5].split() == ["1", "1", "2"]
+    np.testing.assert_allclose(read_log_trajectory(tmp_path / "t.log"), poses, atol=1e-10)
+
+
+def test_log_trajectory_malformed(tmp_path):
+    (tmp_path / "bad.log").write_text("0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n")
+    with pytest.raises(DatasetError, match="5 lines per pose") as info:
+        read_log_trajectory(tmp_path / "bad.log")
+    assert "bad.log" in str(info.value)
+    (tmp_path / "bad2.log").write_text("0 0 1\n1 0 0 0\n0 1 x 0\n0 0 1 0\n0 0 0 1\n")
+    with pytest.raises(DatasetError, match="bad2.log"):
+        read_log_trajectory(tmp_path / "bad2.log")
+
+
+# -- the bundled sample ---------------------------------------------------------------------
+def test_sample(sample):
+    assert len(sample) == 11
+    assert sample.image_size == (240, 320)
+    assert sample.gt_poses.shape == (11, 4, 4)
+    check_poses(sample.gt_poses)
+    # fr1 calibration at half resolution, pixel centres at integers
+    assert sample.K[0, 0] == pytest.approx(517.3 / 2) and sample.K[0, 2] == pytest.approx((318.6 + 0.5) / 2 - 0.5)
+    frame = sample[0]
+    assert frame.color.shape == (240, 320, 3) and frame.color.dtype == np.uint8
+    valid = frame.depth[frame.depth > 0]
+    assert valid.size > 0.5 * frame.depth.size
+    assert 0.5 < np.median(valid) < 3.0 and valid.min() > 0.3 and valid.max() < 6.0
+    # fr1/xyz moves a few cm between the 11 frames (1.2 s), not metres
+    steps = np.linalg.norm(np.diff(sample.gt_poses[:, :3, 3], axis=0), axis=1)
+    assert 0 < steps.max() < 0.2
+
+
+def test_overrides_stride_and_max_frames(sample):
+    seq = load_sample(stride=3)
+    assert len(seq) == 4
+    np.testing.assert_array_equal(seq.gt_poses, sample.gt_poses[::3])
+    np.testing.assert_array_equal(seq[1].depth, sample[3].depth)
+    np.testing.assert_array_equal(seq.timestamps, [0, 3, 6, 9])
+    seq = load_sample(stride=3, max_frames=2)
+    assert len(seq) == 2
+    np.testing.assert_array_equal(seq.gt_poses, sample.gt_poses[[0, 3]])
+
+
+def test_override_depth_trunc(sample):
+    full = sample[0].depth
+    seq = load_sample(depth_trunc=1.0)
+    depth = seq[0].depth
+    assert depth.max() <= 1.0
+    assert ((full > 1.0) & (depth == 0)).sum() == (full > 1.0).sum() > 0  # far depth zeroed
+    near = full <= 1.0
+    np.testing.assert_array_equal(depth[near], full[near])  # the rest untouched
+
+
+def test_override_image_scale(sample):
+    seq = load_sample(image_scale=0.5)
+    assert seq.image_size == (120, 160)
+    frame = seq[0]
+    assert frame.depth.shape == (120, 160) and frame.color.shape == (120, 160, 3)
+    K0, K = sample.K, seq.K
+    assert K[0, 0] == pytest.approx(K0[0, 0] / 2) and K[1, 1] == pytest.approx(K0[1, 1] / 2)
+    # pixel centres at integers: (c + 0.5) * s - 0.5
+    assert K[0, 2] == pytest.approx((K0[0, 2] + 0.5) * 0.5 - 0.5)
+    assert K[1, 2] == pytest.approx((K0[1, 2] + 0.5) * 0.5 - 0.5)
+    # nearest-neighbour depth: every value comes from its 2x2 block at full resolution
+    full = sample[0].depth
+    blocks = full.reshape(120, 2, 160, 2).transpose(0, 2, 1, 3).reshape(120, 160, 4)
+    assert (blocks == frame.depth[..., None]).any(-1).all()
+    # area-averaged colour: mean colour preserved
+    assert np.abs(frame.color.mean((0, 1)) - sample[0].color.mean((0, 1))).max() < 1.0
+    np.testing.assert_array_equal(seq.gt_poses, sample.gt_poses)
+    # rescaled() on the sequence gives the same
+    np.testing.assert_array_equal(sample.rescaled(0.5)[0].depth, frame.depth)
+
+
+def test_override_intrinsic(sample):
+    mine = pinhole(320, 240, 250.0, 251.0, 160.0, 120.0)
+    seq = load_sample(intrinsic=mine)
+    np.testing.assert_allclose(seq.K, [[250, 0, 160], [0, 251, 120], [0, 0, 1]])
+    with pytest.raises(InputError, match="intrinsic"):
+        load_sample(intrinsic=np.eye(3))
+
+
+def test_wrong_depth_scale_is_caught(sample):
+    with pytest.raises(DatasetError, match="depth_scale") as info:
+        load_sample(depth_scale=1)
+    assert "median depth" in str(info.value)
+
+
+# -- bad input ----------------------------------------------------------------------------
+def test_missing_folder(tmp_path):
+    missing = tmp_path / "nope"
+    with pytest.raises(DatasetError, match="not found") as info:
+        load_sequence(missing)
+    assert str(missing) in str(info.value)
+
+
+def test_file_instead_of_folder(tmp_path):
+    f = tmp_path / "file.txt"
+    f.write_text("x")
+    with pytest.raises(DatasetError, match="folder") as info:
+        load_sequence(f)
+    assert str(f) in str(info.value)
+
+
+def test_unknown_layout(tmp_path):
+    (tmp_path / "images").mkdir()
+    (tmp_path / "readme.txt").write_text("hello")
+    with pytest.raises(DatasetError, match="not a known RGB-D layout") as info:
+        load_sequence(tmp_path)
+    assert str(tmp_path) in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [({"stride": 0}, "stride"), ({"stride": 1.5}, "stride"), ({"max_frames": 0}, "max_frames"),
+     ({"depth_scale": -5.0}, "depth_scale"), ({"depth_trunc": -1.0}, "depth_trunc"),
+     ({"image_scale": 0.0}, "image_scale"), ({"image_scale": 2.0}, "image_scale")],
+)
+def test_bad_arguments_name_the_argument(kwargs, name):
+    with pytest.raises(InputError, match=name):
+        load_sequence(SAMPLE_DIR, **kwargs)
+
+
+def test_truncated_png_names_the_file(tmp_path):
+    root, _ = make_redwood(tmp_path / "rw")
+    bad = root / "color" / "00000.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
+    with pytest.raises(DatasetError, match="cannot decode") as info:
+        load_sequence(root)
+    assert str(bad) in str(info.value)
+
+
+def test_colour_depth_size_mismatch(tmp_path):
+    root, _ = make_redwood(tmp_path / "rw")
+    write_rgb(root / "color" / "00000.png", np.zeros((RW_H // 2, RW_W // 2, 3), np.uint8))
+    with pytest.raises(DatasetError, match="colour is 20x15") as info:
+        load_sequence(root)
+    assert "rw frame 0" in str(info.value)
+
+
+def test_depth_intrinsic_size_mismatch(tmp_path):
+    root, _ = make_redwood(tmp_path / "rw")
+    with pytest.raises(DatasetError, match="depth is 40x30 but the intrinsic is 64x48"):
+        load_sequence(root, intrinsic=pinhole(64, 48, 50, 50, 32, 24))
+
+
+def test_all_zero_depth_in_frame_0(tmp_path):
+    root, _ = make_redwood(tmp_path / "rw", raw=0)
+    with pytest.raises(DatasetError, match="frame 0 has no valid depth") as info:
+        load_sequence(root)
+    assert "rw" in str(info.value)
+
+
+def test_8bit_colour_as_depth_is_rejected(tmp_path):
+    root, _ = make_redwood(tmp_path / "rw")
+    write_rgb(root / "depth" / "00000.png", np.full((RW_H, RW_W, 3), 9, np.uint8))
+    with pytest.raises(DatasetError, match="single-channel") as info:
+        load_sequence(root)
+    assert str(root / "depth" / "00000.png") in str(info.value)
+
+
+# -- poses -------------------------------------------------------------------------------
+def test_check_poses():
+    poses = np.stack([rigid([0.1, 0.2, 0.3], [1, 2, 3]), np.eye(4)])
+    out = check_poses(poses.tolist())
+    assert out.dtype == np.float64 and out.shape == (2, 4, 4)
+    nan = poses.copy()
+    nan[1, 0, 3] = np.nan
+    with pytest.raises(PoseError, match=r"NaN/inf at frames \[1\]"):
+        check_poses(nan)
+    scaled = poses.copy()
+    scaled[0, :3, :3] *= 2.0
+    with pytest.raises(PoseError, match=r"not rigid.*\[0\]"):
+        check_poses(scaled)
+    reflect = poses.copy()
+    reflect[1, :3, :3] = np.diag([1.0, 1.0, -1.0])  # orthonormal but det = -1
+    with pytest.raises(PoseError, match=r"not rigid.*\[1\]"):
+        check_poses(reflect)
+    bottom = poses.copy()
+    bottom[0, 3, 0] = 0.5
+    with pytest.raises(PoseError, match="not rigid"):
+        check_poses(bottom)
+    with pytest.raises(PoseError, match=r"shape \(N, 4, 4\)"):
+        check_poses(np.eye(4))
+    with pytest.raises(PoseError, match="my_poses has 2 poses for 3 frames"):
+        check_poses(poses, 3, "my_poses")
+
+
+# -- RGBDSequence in memory ---------------------------------------------------------------
+def small_intrinsic():
+    return pinhole(8, 6, 5.0, 5.0, 3.5, 2.5)
+
+
+def test_from_rgbd_images_numpy_pairs_with_depth_scale():
+    color = np.zeros((6, 8, 3), np.uint8)
+    color[..., 0] = 200
+    raw = np.full((6, 8), 7500, np.uint16)
+    raw[0, 0] = 0
+    poses = np.stack([np.eye(4), rigid([0, 0, 0], [0.1, 0, 0])])
+    seq = RGBDSequence.from_rgbd_images([(color, raw), (color, raw.astype(np.float32) / 5000)],
+                                        small_intrinsic(), gt_poses=poses, depth_scale=5000.0)
+    assert len(seq) == 2
+    for frame in seq:
+        assert frame.depth.dtype == np.float32
+        assert frame.depth[0, 0] == 0 and np.all(frame.depth.ravel()[1:] == 1.5)
+        assert tuple(frame.color[0, 0]) == (200, 0, 0)
+    np.testing.assert_array_equal(seq.timestamps, [0, 1])
+    np.testing.assert_array_equal(seq.gt_poses, poses)
+
+
+def test_from_rgbd_images_open3d():
+    color = np.full((6, 8, 3), (1, 2, 3), np.uint8)
+    raw = np.full((6, 8), 2500, np.uint16)
+    rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
+        o3d.geometry.Image(color), o3d.geometry.Image(raw), depth_scale=1000.0, depth_trunc=10.0,
+        convert_rgb_to_intensity=False)
+    seq = RGBDSequence.from_rgbd_images([rgbd, rgbd], small_intrinsic(), timestamps=[3.0, 4.0])
+    assert np.all(seq[1].depth == 2.5)
+    assert tuple(seq[1].color[5, 7]) == (1, 2, 3)
+    assert seq[1].timestamp == 4.0
+    grey = o3d.geometry.RGBDImage.create_from_color_and_depth(o3d.geometry.Image(color), o3d.geometry.Image(raw))
+    with pytest.raises(InputError, match=r"images\[1\].*convert_rgb_to_intensity"):
+        RGBDSequence.from_rgbd_images([rgbd, grey], small_intrinsic())
+
+
+def test_from_rgbd_images_bad_input():
+    with pytest.raises(InputError, match="no frames"):
+        RGBDSequence.from_rgbd_images([], small_intrinsic())
+    with pytest.raises(InputError, match=r"images\[0\]"):
+        RGBDSequence.from_rgbd_images([np.zeros((6, 8))], small_intrinsic())
+    pair = (np.zeros((6, 8, 3), np.uint8), np.ones((6, 8), np.float32))
+    with pytest.raises(InputError, match="intrinsic"):
+        RGBDSequence.from_rgbd_images([pair], np.eye(3))
+    with pytest.raises(InputError, match="1 timestamps for 2 frames"):
+        RGBDSequence.from_rgbd_images([pair, pair], small_intrinsic(), timestamps=[0.0])
+    with pytest.raises(PoseError, match="gt_poses"):
+        RGBDSequence.from_rgbd_images([pair, pair], small_intrinsic(), gt_poses=np.eye(4)[None])
+    bad = RGBDSequence.from_rgbd_images([(pair[0], np.full((6, 8), np.nan, np.float32))], small_intrinsic())
+    with pytest.raises(DatasetError, match="frame 0: depth has NaN"):
+        bad[0]
+
+
+def test_to_open3d_gives_metres():
+    color = np.full((6, 8, 3), (10, 20, 30), np.uint8)
+    raw = np.full((6, 8), 6000, np.uint16)
+    raw[2, 3] = 20000
+    seq = RGBDSequence.from_rgbd_images([(color, raw)], small_intrinsic(), depth_scale=5000.0, depth_trunc=3.0)
+    rgbd = seq.to_open3d(0)
+    assert isinstance(rgbd, o3d.geometry.RGBDImage)
+    depth = np.asarray(rgbd.depth)
+    assert depth.dtype == np.float32 and depth.shape == (6, 8)
+    assert depth[0, 0] == pytest.approx(1.2) and depth[2, 3] == 0  # 4 m > depth_trunc 3 m
+    assert tuple(np.asarray(rgbd.color)[1, 1]) == (10, 20, 30)
+
+
+def test_select_and_indexing():
+    pairs = [(np.full((6, 8, 3), k, np.uint8), np.full((6, 8), 1.0 + k, np.float32)) for k in range(5)]
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    poses[:, 2, 3] = np.arange(5)
+    seq = RGBDSequence.from_rgbd_images(pairs, small_intrinsic(), timestamps=np.arange(5) * 0.1, gt_poses=poses)
+    sub = seq.select([4, 1])
+    assert len(sub) == 2
+    assert np.all(sub[0].depth == 5.0) and np.all(sub[1].depth == 2.0)
+    np.testing.assert_array_equal(sub.gt_poses[:, 2, 3], [4, 1])
+    np.testing.assert_allclose(sub.timestamps, [0.4, 0.1])
+    assert sub[0].index == 0  # indices are local to the sub-sequence
+    masked = seq.select(np.array([True, False, True, False, False]))
+    np.testing.assert_array_equal(masked.gt_poses[:, 2, 3], [0, 2])
+    assert len(seq.select(range(1, 5, 2))) == 2
+    assert seq[-1].index == 4 and np.all(seq[-1].depth == 5.0)
+    with pytest.raises(IndexError):
+        seq[5]
+    with pytest.raises(InputError, match="select"):
+        seq[1:3]
+    assert "5 frames" in repr(seq) and "8x6" in repr(seq)
+
+
+@pytest.mark.xfail(
+    reason="sequence.py:247 select([]) indexes np.arange(n) with np.asarray([]) (float64) "
+    "and raises a bare IndexError before the intended 'no frames selected' InputError",
+    strict=True,
+)
+def test_select_nothing_raises_input_error():
+    pair = (np.zeros((6, 8, 3), np.uint8), np.ones((6, 8), np.float32))
+    seq = RGBDSequence.from_rgbd_images([pair, pair], small_intrinsic())
+    with pytest.raises(InputError, match="no frames selected"):
+        seq.select([])
+
+
+def test_select_empty_mask_raises_input_error():
+    pair = (np.zeros((6, 8, 3), np.uint8), np.ones((6, 8), np.float32))
+    seq = RGBDSequence.from_rgbd_images([pair, pair], small_intrinsic())
+    with pytest.raises(InputError, match="no frames selected"):
+        seq.select(np.array([False, False]))
+
+
+# -- laziness -----------------------------------------------------------------------------
+def test_sequence_is_lazy():
+    calls = []
+
+    def reader(k):
+        def read():
+            calls.append(k)
+            return np.zeros((6, 8, 3), np.uint8), np.full((6, 8), 1.0 + k, np.float32)
+        return read
+
+    seq = RGBDSequence([reader(k) for k in range(2000)], small_intrinsic())
+    assert calls == [] and len(seq) == 2000
+    sub = seq.select(range(0, 2000, 10)).rescaled(0.5)
+    assert calls == [] and len(sub) == 200
+    frame = seq[1234]
+    assert calls == [1234] and np.all(frame.depth == 1235.0)
+    assert np.all(sub[3].depth == 31.0)
+    assert calls == [1234, 30]
+
+
+def test_load_sequence_reads_only_frame_0(tmp_path, monkeypatch):
+    root, _ = make_redwood(tmp_path / "rw", n=4)
+    read = []
+    original = sequence_module.read_image
+    monkeypatch.setattr(sequence_module, "read_image", lambda path, *a: read.append(Path(path).name) or original(path, *a))
+    seq = load_sequence(root)
+    assert sorted(read) == ["00000.png", "00000.png"]  # colour + depth of frame 0 (check_first_frame)
+    read.clear()
+    seq[2]
+    assert read == ["00002.png", "00002.png"]
+
+
+# -- shared real data (skipped when ../shared/data is absent) -------------------------------
+@pytest.mark.data
+def test_shared_tum(shared_data):
+    seq = load_sequence(shared_data / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz")
+    assert len(seq) > 30 and seq.image_size == (480, 640)
+    assert seq.intrinsic.get_focal_length() == pytest.approx((517.3, 516.5))
+    assert seq.gt_poses is not None and seq.gt_poses.shape == (len(seq), 4, 4)
+    assert np.all(np.diff(seq.timestamps) > 0)
+    valid = seq[0].depth[seq[0].depth > 0]
+    assert 0.5 < np.median(valid) < 3.0
+
+
+@pytest.mark.data
+def test_shared_seven_scenes(shared_data):
+    seq = load_sequence(shared_data / "7scenes_redkitchen" / "every10th_0-990")
+    assert len(seq) == 100 and seq.image_size == (480, 640)
+    np.testing.assert_allclose(seq.K, [[585, 0, 320], [0, 585, 240], [0, 0, 1]])
+    assert seq.gt_poses is not None
+    np.testing.assert_array_equal(seq.timestamps[:3], [0, 10, 20])
+    depth = seq[0].depth
+    assert depth.max() < 10.0  # 65535 raw marks are gone
+    assert 0.5 < np.median(depth[depth > 0]) < 4.0
+
+
+@pytest.mark.data
+def test_shared_redwood(shared_data):
+    seq = load_sequence(shared_data / "redwood_livingroom1_open3d")
+    assert len(seq) == 5 and seq.image_size == (480, 640)
+    np.testing.assert_allclose(seq.K, [[525, 0, 319.5], [0, 525, 239.5], [0, 0, 1]])
+    np.testing.assert_allclose(seq.gt_poses[0, :3, 3], [2, 2, -0.3], atol=1e-6)
+    depth = seq[0].depth
+    assert depth[depth > 0].min() == pytest.approx(0.96, abs=0.02)
+    assert depth.max() == pytest.approx(2.70, abs=0.02)
