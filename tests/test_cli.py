@@ -1,0 +1,102 @@
+"""The open3d-pnerf command line, run in-process through cli.main (and once as a console script)."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from open3d_pnerf import cli
+
+COMMANDS = ("demo", "reconstruct", "track", "tsdf", "render")
+
+
+def test_help_lists_every_command():
+    out = subprocess.run([sys.executable, "-m", "open3d_pnerf.cli", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0
+    for command in COMMANDS:
+        assert command in out.stdout
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_command_has_help(command, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main([command, "--help"])
+    assert exc.value.code == 0
+    assert "usage" in capsys.readouterr().out
+
+
+def test_missing_folder_is_one_clear_line(tmp_path, capsys):
+    missing = tmp_path / "nope"
+    assert cli.main(["--quiet", "track", str(missing), "--out", str(tmp_path / "o")]) == cli.EXIT_ERROR
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "error" in err[0] and str(missing) in err[0]
+
+
+def test_bad_frames_spec(tmp_path, capsys):
+    code = cli.main(["--quiet", "track", "sample", "--frames", "a:b", "--out", str(tmp_path)])
+    assert code == cli.EXIT_ERROR and "--frames" in capsys.readouterr().err
+
+
+def test_track_writes_trajectories(tmp_path, capsys):
+    assert cli.main(["--quiet", "track", "sample", "--frames", "0:6", "--out", str(tmp_path)]) == 0
+    poses = np.load(tmp_path / "poses.npy")
+    assert poses.shape == (6, 4, 4) and np.load(tmp_path / "covariances.npy").shape == (6, 6, 6)
+    assert len((tmp_path / "trajectory_tum.txt").read_text().splitlines()) == 7  # header + 6
+    assert "ATE RMSE" in capsys.readouterr().out
+
+
+def test_tsdf_writes_mesh(tmp_path):
+    assert cli.main(["--quiet", "tsdf", "sample", "--gt-poses", "--out", str(tmp_path)]) == 0
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "mesh.ply"))
+    assert len(mesh.triangles) > 1000 and mesh.has_vertex_colors()
+
+
+@pytest.mark.slow
+def test_reconstruct_render_and_resume(tmp_path):
+    out = tmp_path / "run"
+    args = ["--quiet", "reconstruct", "sample", "--gt-poses", "--preset", "test", "--holdout-every", "4",
+            "--max-steps", "40", "--out", str(out)]
+    assert cli.main(args) == 0
+    for name in ("model.pt", "reconstruction.json", "trajectory_tum.txt", "trajectory.log", "report.md",
+                 "report.json", "checkpoints/checkpoint.pt"):
+        assert (out / name).is_file(), name
+    report = json.loads((out / "report.json").read_text())
+    assert report["training"]["steps"] == 40 and "model" in report["scores"] and "tsdf" in report["scores"]
+
+    assert cli.main(["--quiet", "render", str(out), "--pose", "1", "--out", str(tmp_path / "view.png")]) == 0
+    image = cv2.imread(str(tmp_path / "view.png"))
+    assert image.shape == (120, 160, 3)  # the training intrinsic: image_scale 0.5 of 320x240
+    depth = cv2.imread(str(tmp_path / "view_depth.png"), cv2.IMREAD_UNCHANGED)
+    assert depth.dtype == np.uint16 and np.median(depth[depth > 0]) > 300  # mm, a room-scale scene
+
+    # resume continues the saved schedule: raise the step budget in the saved run config
+    config_path = out / "run_config.json"
+    saved = json.loads(config_path.read_text())
+    saved["config"]["max_steps"] = 50
+    config_path.write_text(json.dumps(saved))
+    assert cli.main(["--quiet", "reconstruct", "--resume", str(out)]) == 0
+    assert json.loads((out / "report.json").read_text())["training"]["steps"] == 50
+
+
+def test_resume_needs_a_run_folder(tmp_path, capsys):
+    assert cli.main(["--quiet", "reconstruct", "--resume", str(tmp_path)]) == cli.EXIT_ERROR
+    assert "run_config.json" in capsys.readouterr().err
+
+
+def test_render_rejects_bad_pose(tmp_path, capsys):
+    assert cli.main(["--quiet", "render", str(tmp_path), "--pose", "0", "--out", str(tmp_path / "x.png")]) == 2
+    assert "reconstruction.json" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(shutil.which("open3d-pnerf") is None and not (Path(sys.executable).parent / "open3d-pnerf").exists(),
+                    reason="console script not installed")
+def test_console_script_installed():
+    exe = shutil.which("open3d-pnerf") or str(Path(sys.executable).parent / "open3d-pnerf")
+    out = subprocess.run([exe, "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "reconstruct" in out.stdout
