@@ -68,11 +68,14 @@ class TSDFVolume:
             coords, depth_img, color_img, intr, intr_c, extr, 1.0, self.depth_max, self.trunc_multiplier
         )
 
-    def mesh(self) -> o3d.geometry.TriangleMesh:
-        """Marching-cubes surface with vertex colours, as a legacy Open3D mesh (empty if nothing fused)."""
+    def mesh(self, weight_threshold: float = 3.0) -> o3d.geometry.TriangleMesh:
+        """Marching-cubes surface with vertex colours, as a legacy Open3D mesh (empty if nothing fused).
+
+        Voxels fused from fewer than `weight_threshold` observations are left out.
+        """
         if self.grid.hashmap().size() == 0:
             return o3d.geometry.TriangleMesh()
-        mesh = self.grid.extract_triangle_mesh().to_legacy()
+        mesh = self.grid.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
         mesh.compute_vertex_normals()
         return mesh
 

@@ -34,9 +34,9 @@ class ReconstructionConfig:
     """Torch device for the field: "cpu", "cuda", "cuda:1", ..."""
     rays_per_batch: int = 512
     """Rays per optimiser step."""
-    n_coarse: int = 24
+    n_coarse: int = 16
     """Stratified samples per ray (coarse pass)."""
-    n_fine: int = 16
+    n_fine: int = 8
     """Importance samples per ray drawn from the coarse weights (fine pass)."""
     n_guided: int = 16
     """Samples in mean +- 3 sigma of the depth target (extra importance samples without one)."""
@@ -73,7 +73,7 @@ class ReconstructionConfig:
     """Resolution of the renders used for mesh and point-cloud export, relative to training."""
     mesh_voxel_size: float = 0.01
     """Voxel size (m) of the TSDF that fuses rendered depth into the exported mesh."""
-    max_point_std: float = 0.05
+    max_point_std: float = 0.1
     """Exported points whose rendered depth std exceeds this (m) are dropped."""
     min_opacity: float = 0.9
     """Exported points/mesh depth need at least this accumulated opacity."""
@@ -86,7 +86,8 @@ class ReconstructionConfig:
                         n_coarse=48, n_fine=48, n_guided=24, grid_resolutions=(16, 32, 64, 128, 256, 384)),
         "test": dict(max_steps=60, time_budget_s=None, rays_per_batch=256, n_coarse=16, n_fine=16,
                      n_guided=8, grid_resolutions=(16, 32, 64, 128), hash_log2_table_size=15, hash_levels=8,
-                     hash_max_resolution=256, eval_every=30, export_scale=0.5),
+                     hash_max_resolution=256, eval_every=30, export_scale=0.5,
+                     max_point_std=0.25),  # smoke runs: a few hundred steps leave depth std ~0.1-0.2 m
     }
 
     @classmethod
@@ -124,28 +125,46 @@ class ReconstructionConfig:
         return self.from_dict({**self.to_dict(), **changes})
 
     def validate(self) -> None:
-        """Raise ConfigError naming the first field with a bad value."""
+        """Raise ConfigError naming the first field with a bad value or type."""
+        number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
+        count = lambda v, low=1: isinstance(v, int) and not isinstance(v, bool) and v >= low  # noqa: E731
         checks = [
-            ("loss", self.loss in LOSSES, f"one of {LOSSES}"),
-            ("field", self.field in FIELDS, f"one of {tuple(FIELDS)}"),
-            ("max_steps", isinstance(self.max_steps, int) and self.max_steps >= 1, "an int >= 1"),
-            ("time_budget_s", self.time_budget_s is None or self.time_budget_s > 0, "None or > 0 seconds"),
-            ("image_scale", 0 < self.image_scale <= 1, "in (0, 1]"),
-            ("holdout_every", isinstance(self.holdout_every, int) and self.holdout_every >= 0, "an int >= 0"),
-            ("rays_per_batch", self.rays_per_batch >= 1, ">= 1"),
-            ("n_coarse", self.n_coarse >= 2, ">= 2"),
-            ("n_fine", self.n_fine >= 0, ">= 0"),
-            ("n_guided", self.n_guided >= 0, ">= 0"),
-            ("lr", self.lr > 0, "> 0"),
-            ("lr_final_factor", 0 < self.lr_final_factor <= 1, "in (0, 1]"),
-            ("grid_resolutions", len(self.grid_resolutions) >= 1 and all(int(r) >= 2 for r in self.grid_resolutions),
-             "a non-empty tuple of ints >= 2"),
-            ("cache_frames", self.cache_frames >= 1, ">= 1"),
-            ("export_scale", 0 < self.export_scale <= 1, "in (0, 1]"),
-            ("mesh_voxel_size", self.mesh_voxel_size > 0, "> 0 metres"),
-            ("device", isinstance(self.device, str) and self.device.split(":")[0] in ("cpu", "cuda", "mps"),
+            ("loss", lambda v: v in LOSSES, f"one of {LOSSES}"),
+            ("field", lambda v: v in FIELDS, f"one of {tuple(FIELDS)}"),
+            ("max_steps", count, "an int >= 1"),
+            ("time_budget_s", lambda v: v is None or (number(v) and v > 0), "None or > 0 seconds"),
+            ("image_scale", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
+            ("holdout_every", lambda v: count(v, 0), "an int >= 0"),
+            ("seed", lambda v: count(v, 0), "an int >= 0"),
+            ("rays_per_batch", count, "an int >= 1"),
+            ("n_coarse", lambda v: count(v, 2), "an int >= 2"),
+            ("n_fine", lambda v: count(v, 0), "an int >= 0"),
+            ("n_guided", lambda v: count(v, 0), "an int >= 0"),
+            ("lr", lambda v: number(v) and v > 0, "a number > 0"),
+            ("lr_final_factor", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
+            ("gains", lambda v: isinstance(v, LossGains) and all(number(g) and g >= 0 for g in dataclasses.astuple(v)),
+             "LossGains with numbers >= 0"),
+            ("grid_resolutions", lambda v: len(v) >= 1 and all(count(r, 2) for r in v), "a non-empty tuple of ints >= 2"),
+            ("grid_features", count, "an int >= 1"),
+            ("hash_levels", count, "an int >= 1"),
+            ("hash_log2_table_size", lambda v: count(v, 4) and v <= 26, "an int in [4, 26]"),
+            ("hash_max_resolution", lambda v: count(v, 16), "an int >= 16"),
+            ("eval_every", count, "an int >= 1"),
+            ("checkpoint_every", count, "an int >= 1"),
+            ("cache_frames", count, "an int >= 1"),
+            ("point_noise_m", lambda v: number(v) and v > 0, "a number > 0"),
+            ("export_scale", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
+            ("mesh_voxel_size", lambda v: number(v) and v > 0, "a number > 0 (metres)"),
+            ("max_point_std", lambda v: number(v) and v > 0, "a number > 0 (metres)"),
+            ("min_opacity", lambda v: number(v) and 0 <= v <= 1, "a number in [0, 1]"),
+            ("device", lambda v: isinstance(v, str) and v.split(":")[0] in ("cpu", "cuda", "mps"),
              '"cpu", "cuda" or "cuda:N"'),
         ]
         for name, ok, expected in checks:
-            if not ok:
-                raise ConfigError(f"config field {name}={getattr(self, name)!r} is invalid: expected {expected}")
+            value = getattr(self, name)
+            try:
+                good = bool(ok(value))
+            except TypeError:
+                good = False
+            if not good:
+                raise ConfigError(f"config field {name}={value!r} is invalid: expected {expected}")

@@ -48,13 +48,16 @@ def point_cloud_from_renders(renders: list[dict], poses, K, min_opacity=0.9, max
 
 
 def mesh_from_renders(renders: list[dict], poses, K, voxel_size=0.01, min_opacity=0.9, max_std=0.05, depth_max=5.0):
-    """Coloured mesh: TSDF fusion (Open3D) of rendered depth/colour where confident."""
+    """Coloured mesh: TSDF fusion (Open3D) of rendered depth/colour where confident.
+
+    Rendered depth is already filtered by opacity and depth_std, so one view suffices per voxel.
+    """
     volume = TSDFVolume(voxel_size, 4 * voxel_size, depth_max)
     for r, pose in zip(renders, poses):
         depth = np.where((r["opacity"] >= min_opacity) & (r["depth_std"] <= max_std), r["depth"], 0).astype(np.float32)
         color = (np.clip(r["color"], 0, 1) * 255).astype(np.uint8)
         volume.integrate(color, depth, K, pose)
-    return volume.mesh()
+    return volume.mesh(weight_threshold=1.0)
 
 
 def uncertainty_colors(sigma: np.ndarray, vmax: float | None = None, cmap: str = "viridis") -> np.ndarray:

@@ -25,7 +25,7 @@ class LossGains:
 
     color: float = 1.0
     """Kc: colour L1."""
-    density: float = 1.0
+    density: float = 0.2
     """Kd: PNeRF density-PDF L1 (per-ray mass difference, in [0, 2])."""
     depth: float = 0.1
     """Kz: expected-depth L1, per metre of error."""

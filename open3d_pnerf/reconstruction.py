@@ -329,5 +329,4 @@ def _holdout_rays(sequence, hold_idx, poses, config, aabb, device, n_rays: int =
         pose = torch.as_tensor(poses[i], dtype=torch.float32, device=device)
         rays.append(make_rays(pose, K, u.to(device), v.to(device), aabb))
         rgbs.append(torch.as_tensor(color, dtype=torch.float32, device=device))
-    cat = lambda name: torch.cat([getattr(r, name) for r in rays])  # noqa: E731
-    return Rays(cat("origins"), cat("directions"), cat("near"), cat("far")), torch.cat(rgbs)
+    return Rays.cat(rays), torch.cat(rgbs)

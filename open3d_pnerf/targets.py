@@ -1,9 +1,8 @@
 """Uncertain per-pixel depth targets: sensor noise, pose uncertainty, multi-view fusion.
 
 For every pixel of every frame the target is a Gaussian over depth, N(mean, sigma^2), in
-**z-depth metres**. A ray r(t) = o + t d with d = K^-1 [u, v, 1] (unit z component) meets
-depth z at ray distance t = z * ||d||, so the ray-distance target is (mean, sigma) * ||d||
-(see :func:`ray_norms`).
+**z-depth metres**. The pixel's ray meets depth z at Euclidean distance t = z ||k|| with
+k = K^-1 [u, v, 1], so the ray-distance target is (mean, sigma) * ||k|| (see :func:`ray_norms`).
 
 Variance of a pixel's target, built per frame i:
   * sensor: sigma_z(z)^2 of the frame's own measurement (:class:`SensorNoise`);
@@ -81,7 +80,7 @@ class DepthTargets:
 
 
 def ray_norms(K: np.ndarray, height: int, width: int) -> np.ndarray:
-    """(H, W) float32 ||K^-1 [u, v, 1]||: ray distance per metre of z-depth at each pixel."""
+    """(H, W) float32 ||K^-1 [u, v, 1]||: metres along the ray per metre of z-depth at each pixel."""
     u, v = np.meshgrid(np.arange(width), np.arange(height))
     x = (u - K[0, 2]) / K[0, 0]
     y = (v - K[1, 2]) / K[1, 1]

@@ -50,7 +50,7 @@ class RayBatcher:
 
     def _next_frame(self) -> int:
         if not self.queue:
-            self.queue = [i for i in self.order_rng.permutation(len(self.sequence)) if i not in self.cache]
+            self.queue = [int(i) for i in self.order_rng.permutation(len(self.sequence)) if i not in self.cache]
         return int(self.queue.pop())
 
     def _load(self, i: int) -> None:
@@ -93,7 +93,8 @@ class RayBatcher:
         return rays, rgb, mean, sigma
 
     def state(self) -> dict:
-        return {"cache": list(self.cache), "queue": list(self.queue), "draws": self.draws,
+        """Plain ints/dicts only, so checkpoints load with torch.load(weights_only=True)."""
+        return {"cache": [int(i) for i in self.cache], "queue": list(self.queue), "draws": self.draws,
                 "order_rng": self.order_rng.bit_generator.state}
 
     def restore(self, state: dict) -> None:

@@ -167,12 +167,6 @@ def test_hashgrid_output_dim_and_gradients():
     assert (enc.table.grad.abs().sum(1) > 0).sum() <= 33 * 8 * 4
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG encodings.py:60-63: at x = 1 the upper corner index res + 1 overflows the dense "
-           "layout of a level; when the finest level is dense with (res+1)^3 close to the table "
-           "size the index falls outside the table (IndexError)",
-)
 def test_hashgrid_accepts_points_on_the_upper_box_faces():
     # res = 31: (31 + 1)^3 = 2^15 exactly fills the table, so the level is dense
     enc = HashGridEncoding(levels=1, features=2, log2_table_size=15, base_resolution=31, max_resolution=31)

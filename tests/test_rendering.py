@@ -46,18 +46,19 @@ def pose_of(R: torch.Tensor, t) -> torch.Tensor:
 
 def rays_along_z(r: int, near: float = 1.0, far: float = 3.0) -> Rays:
     return Rays(torch.zeros(r, 3), torch.tensor([[0.0, 0.0, 1.0]]).expand(r, 3).clone(),
-                torch.full((r,), near), torch.full((r,), far))
+                torch.full((r,), near), torch.full((r,), far), torch.ones(r))
 
 
 # -- rays --------------------------------------------------------------------------------
-def test_pixel_rays_opencv_axes_and_unit_z_directions():
+def test_pixel_rays_opencv_axes_and_unit_directions():
     u = torch.tensor([CX, CX + FX, CX, CX - 2 * FX, 0.0])
     v = torch.tensor([CY, CY, CY + FY, CY - FY, 0.0])
-    origins, dirs = pixel_rays(torch.eye(4), K, u, v)
-    expected = torch.tensor(
+    origins, dirs, norms = pixel_rays(torch.eye(4), K, u, v)
+    k = torch.tensor(
         [[0.0, 0, 1], [1, 0, 1], [0, 1, 1], [-2, -1, 1], [-CX / FX, -CY / FY, 1]]
-    )
-    torch.testing.assert_close(dirs, expected)
+    )  # K^-1 [u, v, 1]
+    torch.testing.assert_close(norms, k.norm(dim=-1))
+    torch.testing.assert_close(dirs, k / k.norm(dim=-1, keepdim=True))
     torch.testing.assert_close(origins, torch.zeros(5, 3))
     # the pixel centre is at integer coordinates: pixel (cx, cy) has no half-pixel offset
     assert dirs[0, 0].item() == 0.0 and dirs[0, 1].item() == 0.0
@@ -69,25 +70,25 @@ def test_pixel_rays_follow_a_camera_to_world_pose():
     pose = pose_of(R, t)
     u = torch.tensor([CX, CX + FX, 12.0])
     v = torch.tensor([CY, CY, 100.0])
-    _, d_cam = pixel_rays(torch.eye(4), K, u, v)
-    origins, dirs = pixel_rays(pose, K, u, v)
+    _, d_cam, _ = pixel_rays(torch.eye(4), K, u, v)
+    origins, dirs, norms = pixel_rays(pose, K, u, v)
     torch.testing.assert_close(dirs, d_cam @ R.T)
     torch.testing.assert_close(origins, t.expand(3, 3))
     # the camera's +z axis (optical axis) is the third column of R
     torch.testing.assert_close(dirs[0], R[:, 2])
-    # camera-frame z of a point at ray distance t along d is t (unit camera z)
-    p = origins + 2.5 * dirs
+    # a point at z-depth 2.5 lies at distance 2.5 * ||K^-1 [u, v, 1]|| along the unit ray
+    p = origins + 2.5 * norms[:, None] * dirs
     z_cam = ((p - t) @ R)[:, 2]
     torch.testing.assert_close(z_cam, torch.full((3,), 2.5))
     # per-ray poses and intrinsics (batched) agree with the shared ones
-    o_b, d_b = pixel_rays(pose.expand(3, 4, 4), K.expand(3, 3, 3), u, v)
+    o_b, d_b, _ = pixel_rays(pose.expand(3, 4, 4), K.expand(3, 3, 3), u, v)
     torch.testing.assert_close(d_b, dirs)
     torch.testing.assert_close(o_b, origins)
 
 
 def test_pixel_rays_origins_are_not_views_of_the_pose():
     pose = pose_of(torch.eye(3), [1.0, 2.0, 3.0])
-    origins, _ = pixel_rays(pose, K, torch.tensor([1.0]), torch.tensor([2.0]))
+    origins, _, _ = pixel_rays(pose, K, torch.tensor([1.0]), torch.tensor([2.0]))
     origins += 1
     assert pose[0, 3].item() == 1.0
 
@@ -121,7 +122,8 @@ def test_make_rays_clamps_near_and_gives_misses_a_tiny_interval():
     # camera inside the box: near is clamped to min_near
     inside = make_rays(pose_of(torch.eye(3), [0, 0, 2.0]), K, u[:1], v[:1], box, min_near=0.2)
     assert inside.near.item() == pytest.approx(0.2) and inside.far.item() == pytest.approx(1.0)
-    torch.testing.assert_close(rays.norms, rays.directions.norm(dim=-1))
+    torch.testing.assert_close(rays.directions.norm(dim=-1), torch.ones(2))
+    torch.testing.assert_close(rays.norms, torch.tensor([1.0, (1 + 10.0**2) ** 0.5]))
     sub = rays[1:]
     assert len(sub) == 1 and sub.far.item() == rays.far[1].item()
 
@@ -148,7 +150,7 @@ def test_bin_edges_contain_samples_sorted_and_clipped():
 def test_stratified_one_sorted_sample_per_slice():
     g = torch.Generator().manual_seed(1)
     rays = Rays(torch.zeros(5, 3), torch.ones(5, 3), torch.tensor([0.1, 0.5, 1.0, 2.0, 0.3]),
-                torch.tensor([1.0, 0.9, 4.0, 2.5, 0.4]))
+                torch.tensor([1.0, 0.9, 4.0, 2.5, 0.4]), torch.ones(5))
     n = 12
     t = stratified(rays, n, g)
     assert t.shape == (5, n)

@@ -22,7 +22,14 @@ from open3d_pnerf.losses import LossGains
 from open3d_pnerf.reconstruction import build_field, scene_box
 from open3d_pnerf.rendering import Rays, make_rays
 from open3d_pnerf.targets import depth_targets
-from open3d_pnerf.training import CHECKPOINT_VERSION, RayBatcher, Trainer, render_field, safe_torch_load
+from open3d_pnerf.training import (
+    CHECKPOINT_VERSION,
+    RayBatcher,
+    Trainer,
+    render_field,
+    safe_torch_load,
+    sampling_of,
+)
 
 
 # -- config ------------------------------------------------------------------------------------
@@ -74,17 +81,12 @@ def test_bad_values_raise_config_error_naming_the_field(field, value):
         ReconstructionConfig().replace(**{field: value})
 
 
-@pytest.mark.xfail(strict=True, reason="BUG config.py:124-146: validate() compares values without checking "
-                                       "their type, so a wrong type raises TypeError instead of ConfigError")
 @pytest.mark.parametrize("field, value", [("lr", "fast"), ("image_scale", None), ("rays_per_batch", "512")])
 def test_values_of_the_wrong_type_raise_config_error(field, value):
     with pytest.raises(ConfigError, match=rf"\b{field}="):
         ReconstructionConfig.preset("test", **{field: value})
 
 
-@pytest.mark.xfail(strict=True, reason="BUG config.py:124-146: eval_every, checkpoint_every, grid_features, "
-                                       "hash_levels are not validated (eval_every=0 -> ZeroDivisionError in "
-                                       "Trainer.train, training.py:196)")
 @pytest.mark.parametrize("field", ["eval_every", "checkpoint_every", "grid_features", "hash_levels"])
 def test_zero_counts_are_rejected(field):
     with pytest.raises(ConfigError, match=rf"\b{field}="):
@@ -205,12 +207,6 @@ def test_ray_batcher_returns_rays_colours_and_targets_of_the_drawn_pixels(scene)
     assert (factor >= 1 - 1e-6).all() and (factor < 1.5).all()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG training.py:61-62 (and reconstruction.py:125-126): rays have unit camera-z directions, so "
-           "o + t d sits at z-depth t, but the batcher multiplies the z targets by ||d|| (and render() "
-           "divides the rendered depth by ||d||): targets land up to 27% too deep at the image corners",
-)
 def test_ray_batcher_targets_lie_on_the_observed_surface(scene):
     seq, targets, aabb = scene
     batcher = RayBatcher(seq, seq.gt_poses, targets, torch.as_tensor(aabb), "cpu", seed=0)
@@ -295,12 +291,7 @@ def interrupt_at(trainer, step):
     "cache_frames",
     [
         64,
-        pytest.param(3, marks=pytest.mark.xfail(
-            strict=True, raises=CheckpointError,
-            reason="BUG training.py:52: RayBatcher.queue holds numpy.int64 (from rng.permutation); "
-                   "state() stores them in the checkpoint and torch.load(weights_only=True) rejects "
-                   "numpy scalars, so a checkpoint of a rotating cache (> cache_frames frames) cannot be "
-                   "resumed")),
+        3,
     ],
 )
 def test_checkpoint_resume_equals_a_straight_run(scene, tmp_path, cache_frames):
@@ -429,8 +420,6 @@ def test_render_field_is_chunk_independent_and_deterministic(scene):
     u = torch.arange(0, 160, 7, dtype=torch.float32)
     v = torch.full_like(u, 60.0)
     rays = make_rays(torch.as_tensor(seq.gt_poses[0], dtype=torch.float32), K, u, v, torch.as_tensor(aabb))
-    from open3d_pnerf.training import sampling_of
-
     a = render_field(field, rays, sampling_of(cfg), chunk=5)
     b = render_field(field, rays, sampling_of(cfg))
     assert set(a) == {"color", "depth", "depth_var", "opacity"}

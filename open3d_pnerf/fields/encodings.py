@@ -45,7 +45,7 @@ class HashGridEncoding(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         pos = x.clamp(0, 1)[:, None, :] * self.resolution[None, :, None]  # (B, L, 3)
-        base = pos.floor()
+        base = pos.floor().clamp(max=self.resolution[None, :, None] - 1)  # x = 1 uses the last cell
         frac = pos - base
         lo_hi = torch.stack([base.long(), base.long() + 1], -1)  # (B, L, 3, 2)
         res1 = self.resolution.long() + 1

@@ -1,8 +1,9 @@
 """Camera rays in world space and their entry/exit distances in the scene box.
 
-Pixel (u, v) of an OpenCV camera with intrinsic K has its centre at integer coordinates;
-its ray is o + t d with d = R K^-1 [u, v, 1] (unit z component in the camera frame), so
-t = z * ||d|| for a point at z-depth z.
+Pixel (u, v) of an OpenCV camera with intrinsic K has its centre at integer coordinates.
+Its ray is o + t d with the unit direction d = R k / ||k||, k = K^-1 [u, v, 1], so t is
+the Euclidean distance along the ray and a point at z-depth z has t = z ||k||
+(``Rays.norms`` holds ||k||). Densities integrate over metres of t, the same in every view.
 """
 
 from __future__ import annotations
@@ -14,29 +15,31 @@ import torch
 
 @dataclasses.dataclass
 class Rays:
-    """A batch of R rays: origins (R, 3), directions (R, 3) with unit camera-z, near/far (R,)."""
+    """A batch of R rays: origins (R, 3), unit directions (R, 3), near/far (R,) metres along
+    the ray, and norms (R,) = ||K^-1 [u, v, 1]||: metres along the ray per metre of z-depth."""
 
     origins: torch.Tensor
     directions: torch.Tensor
     near: torch.Tensor
     far: torch.Tensor
+    norms: torch.Tensor
 
     def __len__(self) -> int:
         return self.origins.shape[0]
 
     def __getitem__(self, index) -> "Rays":
-        return Rays(self.origins[index], self.directions[index], self.near[index], self.far[index])
+        return Rays(*(getattr(self, f.name)[index] for f in dataclasses.fields(self)))
 
-    @property
-    def norms(self) -> torch.Tensor:
-        """(R,) ||d||: ray distance per metre of camera z-depth."""
-        return self.directions.norm(dim=-1)
+    @classmethod
+    def cat(cls, batches: list["Rays"]) -> "Rays":
+        """Concatenate ray batches."""
+        return cls(*(torch.cat([getattr(b, f.name) for b in batches]) for f in dataclasses.fields(cls)))
 
 
 def pixel_rays(pose: torch.Tensor, K: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
-    """Origins and directions (R, 3) of pixels (u, v) (R,) for camera-to-world pose(s).
+    """Origins (R, 3), unit directions (R, 3) and norms ||K^-1 [u, v, 1]|| (R,) of pixels (u, v).
 
-    pose: (4, 4) or (R, 4, 4); K: (3, 3) or (R, 3, 3). Directions have unit camera-z.
+    pose: (4, 4) or (R, 4, 4) camera-to-world; K: (3, 3) or (R, 3, 3).
     """
     if K.dim() == 2:
         K = K.expand(u.shape[0], 3, 3)
@@ -45,8 +48,9 @@ def pixel_rays(pose: torch.Tensor, K: torch.Tensor, u: torch.Tensor, v: torch.Te
     x = (u - K[:, 0, 2]) / K[:, 0, 0]
     y = (v - K[:, 1, 2]) / K[:, 1, 1]
     d_cam = torch.stack([x, y, torch.ones_like(x)], -1)
-    directions = (pose[:, :3, :3] @ d_cam[..., None])[..., 0]
-    return pose[:, :3, 3].clone(), directions
+    norms = d_cam.norm(dim=-1)
+    directions = (pose[:, :3, :3] @ (d_cam / norms[:, None])[..., None])[..., 0]
+    return pose[:, :3, 3].clone(), directions, norms
 
 
 def intersect_aabb(origins, directions, aabb, min_near: float = 0.05):
@@ -61,7 +65,7 @@ def intersect_aabb(origins, directions, aabb, min_near: float = 0.05):
 
 def make_rays(pose, K, u, v, aabb, min_near: float = 0.05) -> Rays:
     """World rays for pixels (u, v) clipped to the scene box (misses get far = near + 1e-3)."""
-    origins, directions = pixel_rays(pose, K, u, v)
+    origins, directions, norms = pixel_rays(pose, K, u, v)
     near, far = intersect_aabb(origins, directions, aabb, min_near)
     far = torch.maximum(far, near + 1e-3)
-    return Rays(origins, directions, near, far)
+    return Rays(origins, directions, near, far, norms)

@@ -105,6 +105,6 @@ def _points(rays: Rays, t: torch.Tensor) -> torch.Tensor:
 
 def _evaluate(field, rays: Rays, t: torch.Tensor):
     r, s = t.shape
-    dirs = torch.nn.functional.normalize(rays.directions, dim=-1)[:, None, :].expand(r, s, 3).reshape(-1, 3)
+    dirs = rays.directions[:, None, :].expand(r, s, 3).reshape(-1, 3)
     sigma, rgb = field(_points(rays, t), dirs)
     return sigma.view(r, s), rgb.view(r, s, 3)
