@@ -15,6 +15,9 @@ class TSDFVolume:
 
     voxel_size and sdf_trunc in metres; depth beyond depth_max (m) is ignored. Poses are
     camera-to-world (N, 4, 4); Open3D's world-to-camera extrinsic is derived here, once.
+    Surfaces (mesh, points, renders) keep voxels whose fused weight (number of
+    observations) exceeds weight_threshold: 3.0 is Open3D's default; use 0.5 to keep
+    everything seen once.
     """
 
     def __init__(
@@ -24,6 +27,7 @@ class TSDFVolume:
         depth_max: float = 3.0,
         block_count: int = 4_000,
         device: str = "CPU:0",
+        weight_threshold: float = 3.0,
     ):
         if not (voxel_size > 0 and sdf_trunc > voxel_size and depth_max > 0):
             raise InputError(
@@ -32,6 +36,7 @@ class TSDFVolume:
             )
         self.voxel_size = voxel_size
         self.depth_max = depth_max
+        self.weight_threshold = weight_threshold
         self.trunc_multiplier = sdf_trunc / voxel_size
         self.device = o3d.core.Device(device)
         self.grid = o3d.t.geometry.VoxelBlockGrid(
@@ -68,14 +73,11 @@ class TSDFVolume:
             coords, depth_img, color_img, intr, intr_c, extr, 1.0, self.depth_max, self.trunc_multiplier
         )
 
-    def mesh(self, weight_threshold: float = 3.0) -> o3d.geometry.TriangleMesh:
-        """Marching-cubes surface with vertex colours, as a legacy Open3D mesh (empty if nothing fused).
-
-        Voxels fused from fewer than `weight_threshold` observations are left out.
-        """
+    def mesh(self) -> o3d.geometry.TriangleMesh:
+        """Marching-cubes surface with vertex colours, as a legacy Open3D mesh (empty if nothing fused)."""
         if self.grid.hashmap().size() == 0:
             return o3d.geometry.TriangleMesh()
-        mesh = self.grid.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
+        mesh = self.grid.extract_triangle_mesh(weight_threshold=self.weight_threshold).to_legacy()
         mesh.compute_vertex_normals()
         return mesh
 
@@ -83,7 +85,7 @@ class TSDFVolume:
         """Zero-crossing points with colours, as a legacy Open3D point cloud (empty if nothing fused)."""
         if self.grid.hashmap().size() == 0:
             return o3d.geometry.PointCloud()
-        return self.grid.extract_point_cloud().to_legacy()
+        return self.grid.extract_point_cloud(weight_threshold=self.weight_threshold).to_legacy()
 
     def render(self, pose: np.ndarray, K: np.ndarray, width: int, height: int) -> dict:
         """Ray-cast the fused surface from a camera-to-world pose (pixel centres at integers).
@@ -127,14 +129,16 @@ def tsdf_fusion(
     device: str = "CPU:0",
     return_volume: bool = False,
     progress: bool = True,
+    weight_threshold: float = 3.0,
 ):
     """Open3D TSDF fusion of every frame of `sequence` at camera-to-world `poses` (N, 4, 4).
 
     Returns the coloured ``o3d.geometry.TriangleMesh``; with return_volume=True returns the
     :class:`TSDFVolume` instead (for ``.point_cloud()`` and ``.render(pose, K, w, h)``).
+    weight_threshold: surfaces keep voxels observed more often than this (see TSDFVolume).
     """
     poses = check_poses(poses, len(sequence), "poses")
-    volume = TSDFVolume(voxel_size, sdf_trunc, depth_max, device=device)
+    volume = TSDFVolume(voxel_size, sdf_trunc, depth_max, device=device, weight_threshold=weight_threshold)
     K = sequence.K
     K_color = np.asarray(sequence.color_intrinsic.intrinsic_matrix)
     for i in tqdm(range(len(sequence)), desc="TSDF fusion", disable=not progress, leave=False):

@@ -52,12 +52,12 @@ def mesh_from_renders(renders: list[dict], poses, K, voxel_size=0.01, min_opacit
 
     Rendered depth is already filtered by opacity and depth_std, so one view suffices per voxel.
     """
-    volume = TSDFVolume(voxel_size, 4 * voxel_size, depth_max)
+    volume = TSDFVolume(voxel_size, 4 * voxel_size, depth_max, weight_threshold=0.5)
     for r, pose in zip(renders, poses):
         depth = np.where((r["opacity"] >= min_opacity) & (r["depth_std"] <= max_std), r["depth"], 0).astype(np.float32)
         color = (np.clip(r["color"], 0, 1) * 255).astype(np.uint8)
         volume.integrate(color, depth, K, pose)
-    return volume.mesh(weight_threshold=1.0)
+    return volume.mesh()
 
 
 def uncertainty_colors(sigma: np.ndarray, vmax: float | None = None, cmap: str = "viridis") -> np.ndarray:

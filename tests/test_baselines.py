@@ -47,7 +47,8 @@ def test_plane_mesh(plane_volume):
     assert mesh.has_vertex_colors() and mesh.has_vertex_normals()
     np.testing.assert_allclose(np.median(np.asarray(mesh.vertex_colors), 0), np.array(COLOR) / 255, atol=0.01)
     # a lower weight threshold keeps the less observed rim: more vertices
-    assert len(volume.mesh(weight_threshold=1.0).vertices) > len(vertices)
+    volume.weight_threshold = 1.0
+    assert len(volume.mesh().vertices) > len(vertices)
 
 
 def test_plane_point_cloud(plane_volume):
@@ -118,27 +119,18 @@ def test_empty_volume():
     assert not out["hit"].any() and np.all(out["depth"] == 0) and np.all(out["color"] == 0)
 
 
-@pytest.mark.xfail(
-    reason="baselines.py TSDFVolume.mesh docstring says voxels fused from *fewer than* "
-    "weight_threshold observations are left out, but Open3D's extract_triangle_mesh keeps only "
-    "weight > threshold: with 2 views, mesh(weight_threshold=2) is empty",
-    strict=True,
-)
-def test_mesh_keeps_voxels_with_exactly_threshold_observations(plane_scene):
+@pytest.mark.parametrize("threshold, empty", [(1.5, False), (2.0, True)])
+def test_mesh_keeps_voxels_observed_more_often_than_the_threshold(plane_scene, threshold, empty):
     seq, poses = plane_sequence(plane_scene, n=2)
-    volume = tsdf_fusion(seq, poses, voxel_size=0.04, sdf_trunc=0.12, return_volume=True, progress=False)
-    assert len(volume.mesh(weight_threshold=2.0).vertices) > 0
+    volume = tsdf_fusion(seq, poses, voxel_size=0.04, sdf_trunc=0.12, return_volume=True, progress=False,
+                         weight_threshold=threshold)
+    assert (len(volume.mesh().vertices) == 0) == empty
 
 
-@pytest.mark.xfail(
-    reason="baselines.py TSDFVolume.point_cloud (and render, via mesh()) keep Open3D's weight "
-    "threshold 3 (strict >), so a fusion of 1-3 frames gives an empty point cloud and render "
-    "although frames were fused ('empty if nothing fused'); point_cloud takes no threshold",
-    strict=True,
-)
 def test_short_fusion_gives_points_and_hits(plane_scene):
     seq, poses = plane_sequence(plane_scene, n=3)
-    volume = tsdf_fusion(seq, poses, voxel_size=0.04, sdf_trunc=0.12, return_volume=True, progress=False)
+    volume = tsdf_fusion(seq, poses, voxel_size=0.04, sdf_trunc=0.12, return_volume=True, progress=False,
+                         weight_threshold=0.5)
     assert len(volume.point_cloud().points) > 0
     h, w = seq.image_size
     assert volume.render(poses[1], seq.K, w, h)["hit"].any()

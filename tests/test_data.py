@@ -159,11 +159,6 @@ def test_tum_empty_list_names_the_file(tmp_path):
     assert str(root / "rgb.txt") in str(info.value)
 
 
-@pytest.mark.xfail(
-    reason="loaders.py:132 _timestamped_files indexes r[1] unchecked: a line without a "
-    "filename raises a bare IndexError instead of DatasetError naming rgb.txt",
-    strict=True,
-)
 def test_tum_list_line_without_filename(tmp_path):
     root = make_tum(tmp_path / "rgbd_dataset_freiburg1_short")
     (root / "rgb.txt").write_text("1.000000\n")
@@ -172,12 +167,6 @@ def test_tum_list_line_without_filename(tmp_path):
     assert "rgb.txt" in str(info.value)
 
 
-@pytest.mark.xfail(
-    reason="loaders.py:175 _interpolate_tum_groundtruth converts with float() / np.array "
-    "unguarded: a non-numeric or ragged groundtruth.txt raises a bare ValueError that does "
-    "not name the file",
-    strict=True,
-)
 @pytest.mark.parametrize("bad", ["0.5 0 0 0 0 0 0 1\nabc 0 0 0 0 0 0 1\n", "0.5 0 0 0 0 0 0 1\n2.5 0 0 0 0 0 1\n"])
 def test_tum_malformed_groundtruth_names_the_file(tmp_path, bad):
     root = make_tum(tmp_path / "rgbd_dataset_freiburg1_gt", bad)
@@ -320,12 +309,6 @@ def test_redwood_colour_depth_count_mismatch(tmp_path):
     assert str(root) in str(info.value)
 
 
-@pytest.mark.xfail(
-    reason="loaders.py:285 _find_intrinsic_json warns 'using the PrimeSense default' even "
-    "when the caller passed intrinsic= (the default is then not used; the TUM reader only "
-    "warns when intrinsic is None)",
-    strict=True,
-)
 def test_redwood_no_warning_when_intrinsic_given(tmp_path):
     root, _ = make_redwood(tmp_path / "rw")
     (root / "camera.json").unlink()
@@ -616,11 +599,6 @@ def test_select_and_indexing():
     assert "5 frames" in repr(seq) and "8x6" in repr(seq)
 
 
-@pytest.mark.xfail(
-    reason="sequence.py:247 select([]) indexes np.arange(n) with np.asarray([]) (float64) "
-    "and raises a bare IndexError before the intended 'no frames selected' InputError",
-    strict=True,
-)
 def test_select_nothing_raises_input_error():
     pair = (np.zeros((6, 8, 3), np.uint8), np.ones((6, 8), np.float32))
     seq = RGBDSequence.from_rgbd_images([pair, pair], small_intrinsic())

@@ -113,7 +113,7 @@ def check_first_frame(seq: RGBDSequence) -> None:
 # -- TUM RGB-D ------------------------------------------------------------------------------
 def _read_list(path: Path) -> list[list[str]]:
     rows = []
-    for line_no, line in enumerate(path.read_text().splitlines(), 1):
+    for line in path.read_text().splitlines():
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -126,6 +126,8 @@ def _read_list(path: Path) -> list[list[str]]:
 def _timestamped_files(path: Path) -> tuple[np.ndarray, list[Path]]:
     rows = _read_list(path)
     try:
+        if any(len(r) < 2 for r in rows):
+            raise ValueError("a line has no filename")
         stamps = np.array([float(r[0]) for r in rows])
     except ValueError as exc:
         raise DatasetError(f"{path}: expected 'timestamp filename' lines ({exc})") from None
@@ -172,8 +174,11 @@ def _tum(path: Path, intrinsic, depth_scale):
 
 
 def _interpolate_tum_groundtruth(path: Path, stamps: np.ndarray) -> np.ndarray | None:
-    rows = np.array([[float(x) for x in r] for r in _read_list(path)])
-    if rows.shape[1] != 8:
+    try:
+        rows = np.array([[float(x) for x in r] for r in _read_list(path)])
+    except ValueError as exc:
+        raise DatasetError(f"{path}: expected 'timestamp tx ty tz qx qy qz qw' lines ({exc})") from None
+    if rows.ndim != 2 or rows.shape[1] != 8:
         raise DatasetError(f"{path}: expected 'timestamp tx ty tz qx qy qz qw' lines")
     t = rows[:, 0]
     inside = (stamps >= t[0]) & (stamps <= t[-1])
@@ -256,7 +261,7 @@ def _redwood(path: Path, intrinsic, depth_scale):
         raise DatasetError(
             f"{path}: {len(colors)} colour images in {color_dir.name}/ but {len(depths)} in depth/"
         )
-    json_intrinsic, json_scale = _find_intrinsic_json(path)
+    json_intrinsic, json_scale = _find_intrinsic_json(path, warn=intrinsic is None)
     scale = depth_scale or json_scale or 1000.0
     readers = [file_reader(c, d, scale) for c, d in zip(colors, depths)]
     intrinsic = intrinsic or json_intrinsic
@@ -268,7 +273,7 @@ def _redwood(path: Path, intrinsic, depth_scale):
     return readers, np.arange(len(readers), dtype=float), poses, intrinsic, None, path.name
 
 
-def _find_intrinsic_json(path: Path):
+def _find_intrinsic_json(path: Path, warn: bool = True):
     """(intrinsic, depth_scale or None) from the folder's Open3D intrinsic JSON."""
     for f in sorted(path.glob("*.json")):
         try:
@@ -282,7 +287,8 @@ def _find_intrinsic_json(path: Path):
             k = k.reshape(3, 3).T  # Open3D stores it column-major
             intr = pinhole(data["width"], data["height"], k[0, 0], k[1, 1], k[0, 2], k[1, 2])
             return intr, data.get("depth_scale")
-    warnings.warn(f"{path}: no intrinsic JSON found, using the PrimeSense default 525/319.5/239.5")
+    if warn:
+        warnings.warn(f"{path}: no intrinsic JSON found, using the PrimeSense default 525/319.5/239.5")
     return pinhole(640, 480, *PRIMESENSE_DEFAULT), None
 
 

@@ -60,7 +60,7 @@ def file_reader(color_path: Path, depth_path: Path, depth_scale: float) -> Frame
 
 
 def check_intrinsic(intrinsic, what: str = "intrinsic") -> o3d.camera.PinholeCameraIntrinsic:
-    """Validate a PinholeCameraIntrinsic (or a 3x3 matrix + size tuple is not accepted)."""
+    """Return `intrinsic` if it is a PinholeCameraIntrinsic with positive size and focal lengths."""
     if not isinstance(intrinsic, o3d.camera.PinholeCameraIntrinsic):
         raise InputError(
             f"{what} must be an open3d.camera.PinholeCameraIntrinsic, got {type(intrinsic).__name__}"
@@ -244,8 +244,13 @@ class RGBDSequence:
 
     def select(self, indices) -> "RGBDSequence":
         """Sub-sequence of the given frame indices (a list, range or boolean mask)."""
-        idx = np.arange(len(self))[np.asarray(indices)] if len(self) else np.asarray(indices)
-        idx = np.atleast_1d(idx).astype(int)
+        sel = np.asarray(indices)
+        if sel.size == 0:
+            raise InputError(f"select(): no frames selected from {self.name}")
+        try:
+            idx = np.atleast_1d(np.arange(len(self))[sel if sel.dtype == bool else sel.astype(np.intp)])
+        except (IndexError, ValueError, TypeError) as exc:
+            raise InputError(f"select(): bad frame indices for {len(self)} frames of {self.name} ({exc})") from None
         if idx.size == 0:
             raise InputError(f"select(): no frames selected from {self.name}")
         gt = None if self.gt_poses is None else self.gt_poses[idx]
