@@ -21,8 +21,10 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-bench: $(STAMP)
-	$(PY) benchmarks/run_all.py
+bench: $(STAMP)  # needs ../shared/data; about 25 minutes on 2 cores
+	$(PY) benchmarks/bench_tracking.py
+	$(PY) benchmarks/bench_targets.py
+	$(PY) benchmarks/bench_nerf.py
 
 clean:
 	rm -rf $(VENV) out

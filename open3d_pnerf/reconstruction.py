@@ -24,6 +24,7 @@ from .data.loaders import write_log_trajectory, write_tum_trajectory
 from .data.sequence import RGBDSequence, check_intrinsic, check_poses, scale_intrinsic
 from .errors import CheckpointError, ConfigError, InputError
 from .export import (
+    backproject,
     mesh_from_renders,
     point_cloud_from_renders,
     read_point_cloud_ply,
@@ -48,10 +49,7 @@ def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: floa
     for i in range(len(targets)):
         valid = np.zeros_like(targets.valid[i])
         valid[::stride, ::stride] = targets.valid[i][::stride, ::stride]
-        v, u = np.nonzero(valid)
-        z = targets.mean[i][v, u]
-        cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], 1)
-        pts.append(cam @ poses[i][:3, :3].T + poses[i][:3, 3])
+        pts.append(backproject(targets.mean[i], K, poses[i], valid))
     pts = np.concatenate(pts)
     lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
     lo, hi = np.minimum(lo, poses[:, :3, 3].min(0)), np.maximum(hi, poses[:, :3, 3].max(0))
