@@ -64,9 +64,14 @@ class TSDFVolume:
         color_img = o3d.t.geometry.Image(self._tensor(color.astype(np.float32) / 255.0, o3d.core.float32))
         intr = self._tensor(K)
         extr = self._tensor(np.linalg.inv(pose))
-        coords = self.grid.compute_unique_block_coordinates(
-            depth_img, intr, extr, 1.0, self.depth_max, self.trunc_multiplier
-        )
+        try:
+            coords = self.grid.compute_unique_block_coordinates(
+                depth_img, intr, extr, 1.0, self.depth_max, self.trunc_multiplier
+            )
+        except RuntimeError as exc:  # too few valid pixels to touch a block: nothing to fuse
+            if "No block is touched" in str(exc):
+                return
+            raise
         intr_c = intr if K_color is None else self._tensor(K_color)
         self._scene = None  # the cached ray-casting mesh is stale now
         self.grid.integrate(

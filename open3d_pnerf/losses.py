@@ -25,9 +25,9 @@ class LossGains:
 
     color: float = 1.0
     """Kc: colour L1."""
-    density: float = 0.2
+    density: float = 0.05
     """Kd: PNeRF density-PDF L1 (per-ray mass difference, in [0, 2])."""
-    depth: float = 0.1
+    depth: float = 0.05
     """Kz: expected-depth L1, per metre of error."""
     dsnerf: float = 0.05
     """DS-NeRF ray-distribution loss gain (loss="dsnerf" only)."""
