@@ -71,9 +71,9 @@ class DenseGridEncoding(nn.Module):
     """Multi-resolution dense feature grids, trilinearly interpolated with ``grid_sample``.
 
     Input x: (B, 3) in [0, 1]. Output: (B, len(resolutions) * features). Each level is a
-    (features, R, R, R) volume; PyTorch's fused grid_sample kernels make this ~5x faster
-    than the hash grid on CPU (measured: 155 k vs 32 k samples/s, forward + backward +
-    Adam, one core), at the cost of memory (256^3 x 2 floats = 134 MB for the finest level).
+    (features, R, R, R) volume; PyTorch's fused grid_sample kernels make this ~3x faster
+    than the hash grid on CPU (benchmarks/bench_nerf.py: 94k vs 29k training samples/s on
+    one core), at the cost of memory (192^3 x 2 floats = 57 MB for the finest level).
     The coarse levels give the coarse-to-fine behaviour a single dense grid lacks.
     """
 
