@@ -7,13 +7,11 @@ same rendered depth and colour, so no floater outside the observed frustums surv
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import matplotlib
 import numpy as np
 import open3d as o3d
 
+from ._files import atomic_write
 from .baselines import TSDFVolume
 
 
@@ -66,23 +64,9 @@ def uncertainty_colors(sigma: np.ndarray, vmax: float | None = None, cmap: str =
     return matplotlib.colormaps[cmap](np.clip(sigma / max(vmax, 1e-9), 0, 1))[:, :3]
 
 
-def _atomic(path: Path, write) -> None:
-    """Call write(tmp_path) then rename over `path`, so a crash never leaves half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
-    try:
-        if not write(str(tmp)):
-            raise OSError(f"Open3D could not write {path}")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def write_mesh_ply(path, mesh: o3d.geometry.TriangleMesh) -> None:
     """Write a mesh as binary PLY, atomically."""
-    _atomic(Path(path), lambda p: o3d.io.write_triangle_mesh(p, mesh, write_ascii=False))
+    atomic_write(path, lambda p: o3d.io.write_triangle_mesh(p, mesh, write_ascii=False))
 
 
 def write_point_cloud_ply(path, cloud: o3d.geometry.PointCloud, sigma: np.ndarray | None = None) -> None:
@@ -90,7 +74,7 @@ def write_point_cloud_ply(path, cloud: o3d.geometry.PointCloud, sigma: np.ndarra
     t = o3d.t.geometry.PointCloud.from_legacy(cloud)
     if sigma is not None:
         t.point.depth_sigma = o3d.core.Tensor(np.asarray(sigma, np.float32)[:, None])
-    _atomic(Path(path), lambda p: o3d.t.io.write_point_cloud(p, t, write_ascii=False))
+    atomic_write(path, lambda p: o3d.t.io.write_point_cloud(p, t, write_ascii=False))
 
 
 def read_point_cloud_ply(path) -> tuple[o3d.geometry.PointCloud, np.ndarray | None]:

@@ -8,7 +8,6 @@ intrinsic, frame split), ``model.pt`` (weights only), ``poses.npy``, ``covarianc
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 import warnings
@@ -19,6 +18,7 @@ import open3d as o3d
 import torch
 from tqdm.auto import tqdm
 
+from ._files import atomic_write
 from .config import ReconstructionConfig
 from .data.loaders import write_log_trajectory, write_tum_trajectory
 from .data.sequence import RGBDSequence, check_intrinsic, check_poses, scale_intrinsic
@@ -34,7 +34,7 @@ from .export import (
 from .fields import make_field
 from .rendering import Rays, make_rays
 from .targets import DepthTargets, depth_targets
-from .training import RayBatcher, Trainer, atomic_torch_save, render_field, safe_torch_load, sampling_of
+from .training import RayBatcher, Trainer, render_field, safe_torch_load, sampling_of
 
 FORMAT_VERSION = 1
 
@@ -154,10 +154,11 @@ class Reconstruction:
             "timestamps": self.timestamps.tolist(),
             "stats": self.stats,
         }
-        atomic_torch_save({k: v.cpu() for k, v in self.field.state_dict().items()}, d / "model.pt")
-        _atomic_write_text(d / "reconstruction.json", json.dumps(meta, indent=1))
+        weights = {k: v.cpu() for k, v in self.field.state_dict().items()}
+        atomic_write(d / "model.pt", lambda p: torch.save(weights, p))
+        atomic_write(d / "reconstruction.json", lambda p: Path(p).write_text(json.dumps(meta, indent=1)))
         for name, arr in (("poses", self.poses), ("covariances", self.covariances)):
-            _atomic_write(d / f"{name}.npy", lambda fh, a=arr: np.save(fh, a))
+            atomic_write(d / f"{name}.npy", lambda p, a=arr: np.save(p, a))
         write_tum_trajectory(d / "trajectory_tum.txt", self.poses, self.timestamps)
         write_log_trajectory(d / "trajectory.log", self.poses)
         for name, geometry, write in (
@@ -206,17 +207,6 @@ class Reconstruction:
         return cls(field, config, np.load(d / "poses.npy"), np.load(d / "covariances.npy"), intr,
                    meta["aabb"], meta["train_indices"], meta["holdout_indices"], meta["timestamps"],
                    mesh, cloud, sigma, meta.get("stats"))
-
-
-def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as fh:
-        write(fh)
-    tmp.replace(path)
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    _atomic_write(path, lambda fh: fh.write(text.encode()))
 
 
 def build_field(config: ReconstructionConfig, aabb: np.ndarray):

@@ -3,7 +3,6 @@ evaluation, atomic checkpoints, clean stop on Ctrl-C and on a NaN loss."""
 
 from __future__ import annotations
 
-import os
 import time
 from collections import OrderedDict
 from pathlib import Path
@@ -12,6 +11,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from ._files import atomic_write
 from .config import ReconstructionConfig
 from .data.sequence import RGBDSequence
 from .errors import CheckpointError, TrainingError
@@ -175,7 +175,7 @@ class Trainer:
         return {"loss": float(loss.detach()), "psnr": float(-10 * torch.log10(mse.clamp(min=1e-10)))}
 
     def evaluate(self) -> dict:
-        """PSNR (dB) and depth error of the held-out pixel set; {} without one."""
+        """PSNR (dB) of the held-out pixel set as {"eval_psnr": ...}; {} without one."""
         if self.eval_rays is None:
             return {}
         rays, rgb = self.eval_rays
@@ -206,12 +206,11 @@ class Trainer:
                 self._set_lr()
                 try:
                     stats = self.train_step()
-                except KeyboardInterrupt:
+                except KeyboardInterrupt:  # the interrupted step is discarded
                     interrupted = True
-                self.step += 0 if interrupted else 1
-                self.elapsed = time.perf_counter() - start_time
-                if interrupted:
                     break
+                self.step += 1
+                self.elapsed = time.perf_counter() - start_time
                 bar.update(1)
                 if self.step % cfg.eval_every == 0 or self._done():
                     stats.update(self.evaluate())
@@ -251,7 +250,7 @@ class Trainer:
     def save_checkpoint(self) -> Path:
         """Write checkpoint.pt atomically (temporary file, fsync, rename)."""
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        atomic_torch_save(self.state_dict(), self.checkpoint_path)
+        atomic_write(self.checkpoint_path, lambda p: torch.save(self.state_dict(), p))
         return self.checkpoint_path
 
     def load_checkpoint(self, path: str | Path) -> None:
@@ -276,17 +275,6 @@ class Trainer:
 def _fused_adam_ok(field) -> bool:
     p = next(field.parameters())
     return p.device.type in ("cpu", "cuda") and p.dtype == torch.float32
-
-
-def atomic_torch_save(obj, path: Path) -> None:
-    """torch.save to a temporary file in the same folder, fsync, then rename over `path`."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        torch.save(obj, fh)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def safe_torch_load(path) -> dict:
