@@ -28,6 +28,9 @@ class ReconstructionConfig:
     """Training/evaluation image size relative to the sequence's frames, in (0, 1]."""
     holdout_every: int = 0
     """Keep every k-th frame (0, k, 2k, ...) out of training for evaluation; 0 = none."""
+    train_views: int = 0
+    """Train on only this many of the non-held-out frames, evenly spaced (sparse-view
+    experiments); 0 = all of them."""
     seed: int = 0
     """Seed of every random choice (rays, samples, initialisation)."""
     device: str = "cpu"
@@ -135,6 +138,7 @@ class ReconstructionConfig:
             ("time_budget_s", lambda v: v is None or (number(v) and v > 0), "None or > 0 seconds"),
             ("image_scale", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
             ("holdout_every", lambda v: count(v, 0), "an int >= 0"),
+            ("train_views", lambda v: v == 0 or count(v, 2), "0 (all) or an int >= 2"),
             ("seed", lambda v: count(v, 0), "an int >= 0"),
             ("rays_per_batch", count, "an int >= 1"),
             ("n_coarse", lambda v: count(v, 2), "an int >= 2"),

@@ -1,13 +1,16 @@
-"""Metrics: image (PSNR, SSIM), depth (L1, RMSE, relative), depth calibration, and a
-held-out comparison of the model with the TSDF baseline on the same frames."""
+"""Metrics: image (PSNR, SSIM), depth (L1, RMSE, relative), depth calibration, geometry
+against a reference surface, and a held-out comparison of the model with the TSDF
+baseline on the same frames."""
 
 from __future__ import annotations
 
 import numpy as np
+import open3d as o3d
 import torch
 
 from .baselines import TSDFVolume
 from .data.sequence import RGBDSequence
+from .errors import InputError
 
 
 def psnr(pred: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -55,36 +58,97 @@ def depth_calibration(pred: np.ndarray, std: np.ndarray, gt: np.ndarray, valid: 
     return out
 
 
-def heldout_scores(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = None, scale: float | None = None) -> dict:
-    """Score a Reconstruction (and optionally a TSDF volume) on its held-out frames.
+def _surface_points(geometry, n_points: int, what: str) -> o3d.geometry.PointCloud:
+    """Points on a legacy TriangleMesh (area-uniform samples) or the points of a PointCloud."""
+    if isinstance(geometry, o3d.geometry.TriangleMesh):
+        if not geometry.has_triangles():
+            raise InputError(f"{what}: the mesh has no triangles")
+        o3d.utility.random.seed(0)  # reproducible samples
+        return geometry.sample_points_uniformly(n_points)
+    if isinstance(geometry, o3d.geometry.PointCloud):
+        if not geometry.has_points():
+            raise InputError(f"{what}: the point cloud is empty")
+        return geometry
+    raise InputError(f"{what} must be an open3d.geometry.TriangleMesh or PointCloud, got {type(geometry).__name__}")
 
-    Renders both at the held-out poses at the training resolution (or `scale` of the
-    sequence) and compares with the frames' colour (on the depth grid) and sensor depth.
-    Returns {"model": {...}, "tsdf": {...}} of means over held-out frames; TSDF colour is
-    scored over all pixels and over the pixels its ray cast hits ("psnr_hits").
+
+def _distances(points: o3d.geometry.PointCloud, to, to_points: o3d.geometry.PointCloud) -> np.ndarray:
+    """Distance (m) from each point to the surface `to` (exact for meshes, nearest point otherwise)."""
+    if isinstance(to, o3d.geometry.TriangleMesh):
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(to))
+        query = o3d.core.Tensor(np.asarray(points.points, np.float32))
+        return scene.compute_distance(query).numpy().astype(np.float64)
+    return np.asarray(points.compute_point_cloud_distance(to_points))
+
+
+def geometry_metrics(pred, reference, thresholds=(0.02, 0.05), n_points: int = 200_000) -> dict:
+    """Accuracy, completeness, Chamfer and F-score of a reconstructed surface (m).
+
+    pred, reference: legacy ``o3d.geometry.TriangleMesh`` or ``PointCloud`` in the same
+    world frame; meshes are sampled with `n_points` points. accuracy: mean distance from
+    pred to reference; completeness: mean distance from reference to pred; chamfer: their
+    mean; for each threshold t: precision_<t>, recall_<t>, fscore_<t> (t in mm in the key),
+    the fractions within t and their harmonic mean.
+    """
+    pred_pts = _surface_points(pred, n_points, "pred")
+    ref_pts = _surface_points(reference, n_points, "reference")
+    d_pred = _distances(pred_pts, reference, ref_pts)
+    d_ref = _distances(ref_pts, pred, pred_pts)
+    out = {"accuracy": float(d_pred.mean()), "completeness": float(d_ref.mean())}
+    out["chamfer"] = (out["accuracy"] + out["completeness"]) / 2
+    for t in thresholds:
+        p, r = float((d_pred <= t).mean()), float((d_ref <= t).mean())
+        key = f"{t * 1000:g}mm"
+        out.update({f"precision_{key}": p, f"recall_{key}": r, f"fscore_{key}": 2 * p * r / (p + r) if p + r else 0.0})
+    return out
+
+
+def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = None, scale: float | None = None):
+    """Yield, per held-out frame of a Reconstruction, the inputs and both renders.
+
+    Renders at the training resolution (or `scale` of the sequence). Each item is a dict:
+    index (frame), color (H, W, 3) in [0, 1] on the depth grid, depth (H, W) sensor z-depth
+    m, model (Reconstruction.render output), tsdf (TSDFVolume.render output or None).
     """
     scale = scale or recon.config.image_scale
     seq = sequence.select(recon.holdout_indices)
     seq = seq.rescaled(seq.image_scale * scale)
     K, (h, w) = seq.K, seq.image_size
-    rows: dict[str, list[dict]] = {"model": [], "tsdf": []}
     for k, i in enumerate(recon.holdout_indices):
         frame = seq[k]
-        color = seq.color_on_depth_grid(frame.color) / 255.0
-        out = recon.render(recon.poses[i], seq.intrinsic)
+        yield {
+            "index": int(i), "color": seq.color_on_depth_grid(frame.color) / 255.0, "depth": frame.depth,
+            "model": recon.render(recon.poses[i], seq.intrinsic),
+            "tsdf": None if tsdf is None else tsdf.render(recon.poses[i], K, w, h),
+        }
+
+
+def score_renders(renders) -> dict:
+    """{"model": {...}, "tsdf": {...}}: means over frames of image, depth and calibration
+    metrics (items as yielded by :func:`heldout_renders`). TSDF colour is scored over all
+    pixels ("psnr") and over the pixels its ray cast hits ("psnr_hits")."""
+    rows: dict[str, list[dict]] = {"model": [], "tsdf": []}
+    for r in renders:
+        color, depth, out, t = r["color"], r["depth"], r["model"], r["tsdf"]
         rows["model"].append({
             "psnr": psnr(out["color"], color), "ssim": ssim(out["color"], color),
-            **{f"depth_{m}": v for m, v in depth_errors(out["depth"], frame.depth).items()},
-            **depth_calibration(out["depth"], out["depth_std"], frame.depth),
+            **{f"depth_{m}": v for m, v in depth_errors(out["depth"], depth).items()},
+            **depth_calibration(out["depth"], out["depth_std"], depth),
         })
-        if tsdf is not None:
-            t = tsdf.render(recon.poses[i], K, w, h)
+        if t is not None:
             rows["tsdf"].append({
                 "psnr": psnr(t["color"], color), "psnr_hits": psnr(t["color"], color, t["hit"]),
                 "ssim": ssim(t["color"], color), "hit_fraction": float(t["hit"].mean()),
-                **{f"depth_{m}": v for m, v in depth_errors(t["depth"], frame.depth, t["hit"]).items()},
+                **{f"depth_{m}": v for m, v in depth_errors(t["depth"], depth, t["hit"]).items()},
             })
     return {name: _mean_rows(r) for name, r in rows.items() if r}
+
+
+def heldout_scores(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = None, scale: float | None = None) -> dict:
+    """Score a Reconstruction (and optionally a TSDF volume) on its held-out frames:
+    :func:`score_renders` of :func:`heldout_renders`."""
+    return score_renders(heldout_renders(recon, sequence, tsdf, scale))
 
 
 def _mean_rows(rows: list[dict]) -> dict:

@@ -57,15 +57,19 @@ def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: floa
     return np.stack([lo - margin, hi + margin]).astype(np.float32)
 
 
-def split_frames(n: int, holdout_every: int) -> tuple[np.ndarray, np.ndarray]:
-    """(train, holdout) frame indices: every holdout_every-th frame (0, k, 2k, ...) held out."""
+def split_frames(n: int, holdout_every: int, train_views: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(train, holdout) frame indices: every holdout_every-th frame (0, k, 2k, ...) held out;
+    train_views > 0 keeps that many of the others, evenly spaced (the held-out set is unchanged)."""
     idx = np.arange(n)
-    if holdout_every <= 0:
-        return idx, idx[:0]
-    hold = idx % holdout_every == 0
-    if hold.all() or (~hold).sum() < 2:
+    hold = idx % holdout_every == 0 if holdout_every > 0 else np.zeros(n, bool)
+    train = idx[~hold]
+    if len(train) < 2:
         raise InputError(f"holdout_every={holdout_every} leaves fewer than 2 training frames of {n}")
-    return idx[~hold], idx[hold]
+    if train_views:
+        if train_views > len(train):
+            raise InputError(f"train_views={train_views} but only {len(train)} frames are not held out")
+        train = train[np.round(np.linspace(0, len(train) - 1, train_views)).astype(int)]
+    return train, idx[hold]
 
 
 class Reconstruction:
@@ -109,13 +113,10 @@ class Reconstruction:
         depth_std (H, W) m (the spread of the model's depth distribution along each ray),
         opacity (H, W) in [0, 1].
         """
-        pose = check_poses(np.asarray(pose)[None], 1, "pose")[0]
         intrinsic = check_intrinsic(intrinsic or self.intrinsic)
         h, w = intrinsic.height, intrinsic.width
-        K = torch.as_tensor(np.array(intrinsic.intrinsic_matrix), dtype=torch.float32, device=self.device)
         v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
-        rays = make_rays(torch.as_tensor(pose, dtype=torch.float32, device=self.device), K,
-                         u.reshape(-1).float(), v.reshape(-1).float(), self.field.aabb)
+        rays = self._rays(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float())
         out = render_field(self.field, rays, sampling_of(self.config), chunk)
         norms = rays.norms
         return {
@@ -124,6 +125,35 @@ class Reconstruction:
             "depth_std": (out["depth_var"].sqrt() / norms).view(h, w).cpu().numpy(),
             "opacity": out["opacity"].view(h, w).cpu().numpy(),
         }
+
+    def depth_pdf(self, pose, pixels_uv, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None) -> dict:
+        """The model's depth distribution along the rays of R pixels, in z-depth metres.
+
+        pixels_uv: (R, 2) pixel coordinates (u column, v row; centres at integers) of a camera
+        at the camera-to-world `pose` (4, 4) with `intrinsic` (default: the training one); the
+        samples are those of :meth:`render`. Returns numpy arrays: z (R, S) sample z-depths,
+        edges (R, S + 1) their bin edges (z m), mass (R, S) normalised weights w / sum(w) (the
+        paper's learned PDF D), pdf (R, S) = mass / bin width (1/m, comparable with a Gaussian
+        density over z), opacity (R,) = sum(w).
+        """
+        uv = np.asarray(pixels_uv, np.float32)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise InputError(f"pixels_uv must be (R, 2) pixel coordinates (u, v), got shape {uv.shape}")
+        uv = torch.as_tensor(uv, device=self.device)
+        rays = self._rays(pose, check_intrinsic(intrinsic or self.intrinsic), uv[:, 0], uv[:, 1])
+        out = render_field(self.field, rays, sampling_of(self.config), keys=("t", "edges", "weights", "opacity"))
+        norms = rays.norms[:, None]
+        edges = out["edges"] / norms
+        mass = out["weights"] / (out["opacity"][:, None] + 1e-10)
+        pdf = mass / (edges[:, 1:] - edges[:, :-1]).clamp(min=1e-9)
+        return {"z": (out["t"] / norms).cpu().numpy(), "edges": edges.cpu().numpy(), "mass": mass.cpu().numpy(),
+                "pdf": pdf.cpu().numpy(), "opacity": out["opacity"].cpu().numpy()}
+
+    def _rays(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic, u: torch.Tensor, v: torch.Tensor) -> Rays:
+        """Rays of pixels (u, v) (R,) from a camera-to-world pose (4, 4), clipped to the scene box."""
+        pose = check_poses(np.asarray(pose)[None], 1, "pose")[0]
+        K = torch.as_tensor(np.array(intrinsic.intrinsic_matrix), dtype=torch.float32, device=self.device)
+        return make_rays(torch.as_tensor(pose, dtype=torch.float32, device=self.device), K, u, v, self.field.aabb)
 
     def export_geometry(self, progress: bool = True) -> None:
         """Render the training views at export_scale and rebuild .mesh, .point_cloud, .point_sigma."""
@@ -243,7 +273,7 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     n = len(rgbd_sequence)
     if n < 2:
         raise InputError(f"reconstruct() needs at least 2 frames, the sequence has {n}")
-    train_idx, hold_idx = split_frames(n, config.holdout_every)
+    train_idx, hold_idx = split_frames(n, config.holdout_every, config.train_views)
     stages = tqdm(total=4, desc="reconstruct", disable=not config.progress, dynamic_ncols=True)
     timings = {}
     t0 = time.perf_counter()
