@@ -289,12 +289,15 @@ def safe_torch_load(path) -> dict:
 
 
 @torch.no_grad()
-def render_field(field, rays, sampling: SamplingConfig, chunk: int = 2048) -> dict:
+def render_field(field, rays, sampling: SamplingConfig, chunk: int = 2048,
+                 keys: tuple = ("color", "depth", "depth_var", "opacity")) -> dict:
     """Render rays in chunks without gradient (deterministic mid-bin samples).
 
-    Returns color (R, 3), depth (R,) expected ray distance, depth_var (R,), opacity (R,).
+    Returns the :class:`~open3d_pnerf.rendering.RayRender` fields named by `keys`: by default
+    color (R, 3), depth (R,) expected ray distance, depth_var (R,), opacity (R,); also
+    t (R, S), edges (R, S + 1), weights (R, S) with S = n_coarse + n_fine + n_guided.
     """
-    outs = {"color": [], "depth": [], "depth_var": [], "opacity": []}
+    outs = {k: [] for k in keys}
     inference = SamplingConfig(sampling.n_coarse, sampling.n_fine + sampling.n_guided, 0)
     for start in range(0, len(rays), chunk):
         fine, _ = render_rays(field, rays[start : start + chunk], inference, jitter=False)

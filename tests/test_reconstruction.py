@@ -241,6 +241,25 @@ def test_render_depth_of_an_analytic_wall_is_its_z_depth_everywhere():
     np.testing.assert_allclose(out["depth"], expected, rtol=0.01)
 
 
+def test_depth_pdf_of_an_analytic_wall_peaks_at_its_z_depth():
+    recon = wall_reconstruction(1.2)
+    pixels = np.array([[19.5, 14.5], [0, 0], [39, 29], [5, 20]])  # centre and corners: ||K^-1 [u, v, 1]|| up to 1.3
+    pdf = recon.depth_pdf(np.eye(4), pixels)
+    s = recon.config.n_coarse + recon.config.n_fine + recon.config.n_guided
+    assert pdf["z"].shape == pdf["mass"].shape == pdf["pdf"].shape == (4, s) and pdf["edges"].shape == (4, s + 1)
+    assert (np.diff(pdf["edges"], axis=1) >= 0).all() and (pdf["z"] >= pdf["edges"][:, :-1] - 1e-6).all()
+    np.testing.assert_allclose(pdf["mass"].sum(1), 1.0, atol=1e-4)
+    np.testing.assert_allclose((pdf["pdf"] * np.diff(pdf["edges"], axis=1)).sum(1), 1.0, atol=1e-4)
+    np.testing.assert_allclose(pdf["opacity"], 1.0, atol=1e-4)
+    # z-depth, not ray distance: the mode is the wall's z-depth for every pixel, as in render()
+    np.testing.assert_allclose(pdf["z"][np.arange(4), pdf["mass"].argmax(1)], 1.2, atol=0.01)
+    depth = recon.render(np.eye(4))["depth"]
+    expected = (pdf["mass"] * pdf["z"]).sum(1)
+    np.testing.assert_allclose(expected[1:], depth[pixels[1:, 1].astype(int), pixels[1:, 0].astype(int)], atol=1e-4)
+    with pytest.raises(InputError, match="pixels_uv"):
+        recon.depth_pdf(np.eye(4), [1, 2, 3])
+
+
 # -- end to end on the sample ---------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def sample():
