@@ -6,7 +6,7 @@ import numpy as np
 import open3d as o3d
 from tqdm.auto import tqdm
 
-from .data.sequence import RGBDSequence, check_poses
+from .data.sequence import RGBDSequence, check_poses, check_sequence
 from .errors import InputError
 
 
@@ -142,7 +142,7 @@ def tsdf_fusion(
     :class:`TSDFVolume` instead (for ``.point_cloud()`` and ``.render(pose, K, w, h)``).
     weight_threshold: surfaces keep voxels observed more often than this (see TSDFVolume).
     """
-    poses = check_poses(poses, len(sequence), "poses")
+    poses = check_poses(poses, len(check_sequence(sequence, what="tsdf_fusion(): sequence")), "poses")
     volume = TSDFVolume(voxel_size, sdf_trunc, depth_max, device=device, weight_threshold=weight_threshold)
     K = sequence.K
     K_color = np.asarray(sequence.color_intrinsic.intrinsic_matrix)

@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from ._files import atomic_write
 from .config import ReconstructionConfig
 from .data.loaders import write_log_trajectory, write_tum_trajectory
-from .data.sequence import RGBDSequence, check_intrinsic, check_poses, scale_intrinsic
+from .data.sequence import RGBDSequence, check_intrinsic, check_poses, check_sequence, scale_intrinsic
 from .errors import CheckpointError, ConfigError, InputError
 from .export import (
     backproject,
@@ -33,10 +33,11 @@ from .export import (
 )
 from .fields import make_field
 from .rendering import Rays, make_rays
-from .targets import DepthTargets, depth_targets
-from .training import RayBatcher, Trainer, render_field, safe_torch_load, sampling_of
+from .targets import DepthTargets, check_covariances, depth_targets
+from .training import RayBatcher, Trainer, read_checkpoint, render_field, safe_torch_load, sampling_of
 
 FORMAT_VERSION = 1
+META_KEYS = ("format_version", "config", "aabb", "intrinsic", "train_indices", "holdout_indices", "timestamps")
 
 
 def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: float = 0.1, stride: int = 4) -> np.ndarray:
@@ -207,36 +208,76 @@ class Reconstruction:
         """Load a folder written by :meth:`save` (weights_only: a crafted file cannot run code)."""
         d = Path(directory)
         meta_path = d / "reconstruction.json"
-        if not meta_path.is_file():
-            raise CheckpointError(f"{d}: not a saved reconstruction (reconstruction.json missing)")
-        try:
-            meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise CheckpointError(f"{meta_path}: corrupt JSON ({exc})") from None
-        if meta.get("format_version") != FORMAT_VERSION:
-            raise CheckpointError(
-                f"{meta_path}: format version {meta.get('format_version')!r}, this library reads {FORMAT_VERSION}"
-            )
+        meta = _read_meta(meta_path)
         try:
             config = ReconstructionConfig.from_dict(meta["config"])
-        except ConfigError as exc:
+        except (ConfigError, TypeError, ValueError) as exc:
             raise CheckpointError(f"{meta_path}: incompatible config ({exc})") from None
+        try:
+            aabb = np.asarray(meta["aabb"], np.float32).reshape(2, 3)
+            if not (np.isfinite(aabb).all() and (aabb[0] < aabb[1]).all()):
+                raise ValueError(f"aabb {meta['aabb']} is not a finite [min, max] box")
+            K = np.asarray(meta["intrinsic"]["K"], np.float64).reshape(3, 3)
+            intr = check_intrinsic(o3d.camera.PinholeCameraIntrinsic(
+                int(meta["intrinsic"]["width"]), int(meta["intrinsic"]["height"]), K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+            timestamps = np.asarray(meta["timestamps"], np.float64).reshape(-1)
+            n = len(timestamps)
+            indices = [np.asarray(meta[k], int).reshape(-1) for k in ("train_indices", "holdout_indices")]
+            if any(((i < 0) | (i >= n)).any() for i in indices):
+                raise ValueError(f"frame indices outside [0, {n})")
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{meta_path}: malformed metadata ({exc})") from None
         if device:
             config = config.replace(device=device)
-        field = build_field(config, np.asarray(meta["aabb"], np.float32))
+        field = build_field(config, aabb)
         state = safe_torch_load(d / "model.pt")
         try:
             field.load_state_dict(state)
-        except (RuntimeError, KeyError) as exc:
+        except (RuntimeError, KeyError, TypeError) as exc:
             raise CheckpointError(f"{d / 'model.pt'}: weights do not match the config ({exc})") from None
-        K = np.asarray(meta["intrinsic"]["K"])
-        intr = o3d.camera.PinholeCameraIntrinsic(meta["intrinsic"]["width"], meta["intrinsic"]["height"],
-                                                 K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-        mesh = o3d.io.read_triangle_mesh(str(d / "mesh.ply")) if (d / "mesh.ply").is_file() else None
-        cloud, sigma = read_point_cloud_ply(d / "point_cloud.ply") if (d / "point_cloud.ply").is_file() else (None, None)
-        return cls(field, config, np.load(d / "poses.npy"), np.load(d / "covariances.npy"), intr,
-                   meta["aabb"], meta["train_indices"], meta["holdout_indices"], meta["timestamps"],
-                   mesh, cloud, sigma, meta.get("stats"))
+        mesh = _read_ply(d / "mesh.ply", lambda p: o3d.io.read_triangle_mesh(str(p)))
+        cloud, sigma = _read_ply(d / "point_cloud.ply", read_point_cloud_ply) or (None, None)
+        return cls(field, config, _load_array(d / "poses.npy", (n, 4, 4)), _load_array(d / "covariances.npy", (n, 6, 6)),
+                   intr, aabb, *indices, timestamps, mesh, cloud, sigma, meta.get("stats"))
+
+
+def _read_meta(path: Path) -> dict:
+    """The JSON object of a saved reconstruction, checked for its format version and keys."""
+    if not path.is_file():
+        raise CheckpointError(f"{path.parent}: not a saved reconstruction (reconstruction.json missing)")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CheckpointError(f"{path}: corrupt JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"{path}: expected a JSON object, got {type(meta).__name__}")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"{path}: format version {meta.get('format_version')!r}, this library reads {FORMAT_VERSION}")
+    missing = [k for k in META_KEYS if k not in meta]
+    if missing or not isinstance(meta["config"], dict):
+        raise CheckpointError(f"{path}: incomplete, missing {missing or ['config (an object)']}")
+    return meta
+
+
+def _load_array(path: Path, shape: tuple) -> np.ndarray:
+    """A finite .npy array of the given shape (never unpickled)."""
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise CheckpointError(f"{path}: missing or corrupt ({exc})") from None
+    if arr.shape != shape or not np.isfinite(arr).all():
+        raise CheckpointError(f"{path}: expected finite values of shape {shape}, got shape {arr.shape}")
+    return arr
+
+
+def _read_ply(path: Path, read):
+    """read(path), or None without the file; a saved PLY that reads as empty is corrupt."""
+    if not path.is_file():
+        return None
+    out = read(path)
+    if (out[0] if isinstance(out, tuple) else out).is_empty():
+        raise CheckpointError(f"{path}: unreadable or empty PLY (save never writes an empty one)")
+    return out
 
 
 def build_field(config: ReconstructionConfig, aabb: np.ndarray):
@@ -264,16 +305,19 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     config: a ReconstructionConfig (default: the "fast" preset). checkpoint_dir: where
     training checkpoints go; resume=True continues from its checkpoint.pt.
     """
-    if not isinstance(rgbd_sequence, RGBDSequence):
-        raise InputError(f"rgbd_sequence must be an RGBDSequence (see load_sequence), got {type(rgbd_sequence).__name__}")
+    n = len(check_sequence(rgbd_sequence, 2, "reconstruct(): rgbd_sequence"))
     config = config or ReconstructionConfig.preset("fast")
     if not isinstance(config, ReconstructionConfig):
         raise InputError(f"config must be a ReconstructionConfig, got {type(config).__name__}")
     config.validate()
-    n = len(rgbd_sequence)
-    if n < 2:
-        raise InputError(f"reconstruct() needs at least 2 frames, the sequence has {n}")
     train_idx, hold_idx = split_frames(n, config.holdout_every, config.train_views)
+    if poses is not None:
+        poses, covariances = check_poses(poses, n, "poses"), check_covariances(covariances, n)
+    checkpoint = None
+    if resume:  # read it now, not after minutes of tracking
+        if not checkpoint_dir:
+            raise InputError("resume=True needs checkpoint_dir")
+        checkpoint = read_checkpoint(Path(checkpoint_dir) / "checkpoint.pt")
     stages = tqdm(total=4, desc="reconstruct", disable=not config.progress, dynamic_ncols=True)
     timings = {}
     t0 = time.perf_counter()
@@ -284,8 +328,6 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
 
         trajectory = track(rgbd_sequence, point_noise_m=config.point_noise_m, progress=config.progress)
         poses, covariances = trajectory.poses, trajectory.covariances
-    poses = check_poses(poses, n, "poses")
-    covariances = np.zeros((n, 6, 6)) if covariances is None else np.asarray(covariances, np.float64)
     timings["tracking_s"] = round(time.perf_counter() - t0, 2)
     stages.update(1)
 
@@ -307,10 +349,8 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     batcher = RayBatcher(train_seq, poses[train_idx], targets, field.aabb, device, config.seed, config.cache_frames)
     eval_rays = _holdout_rays(rgbd_sequence, hold_idx, poses, config, field.aabb, device)
     trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir)
-    if resume:
-        if not checkpoint_dir:
-            raise InputError("resume=True needs checkpoint_dir")
-        trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt")
+    if checkpoint is not None:
+        trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt", checkpoint)
     train_stats = trainer.train()
     stages.update(1)
 

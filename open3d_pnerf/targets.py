@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from .data.sequence import RGBDSequence, check_poses
+from .data.sequence import RGBDSequence, check_poses, check_sequence
 from .errors import InputError
 
 
@@ -143,6 +143,14 @@ def reproject(depth_j, var_j, pose_j, cov_j, pose_i, K, shape_i):
     return z.reshape(h, w), var.reshape(h, w)
 
 
+def check_covariances(covariances, n: int, what: str = "covariances") -> np.ndarray:
+    """(n, 6, 6) float64 pose covariances (zeros for None), checked finite and of that shape."""
+    covs = np.zeros((n, 6, 6)) if covariances is None else np.asarray(covariances, np.float64)
+    if covs.shape != (n, 6, 6) or not np.isfinite(covs).all():
+        raise InputError(f"{what} must be finite with shape ({n}, 6, 6), got shape {covs.shape}")
+    return covs
+
+
 def depth_targets(
     sequence: RGBDSequence,
     trajectory=None,
@@ -164,15 +172,13 @@ def depth_targets(
     each side reprojected into a frame. consistency_sigmas: outlier gate. storage_dir: keep
     the (N, H, W) arrays in .npy memory maps there instead of RAM (long sequences).
     """
+    n = len(check_sequence(sequence, what="depth_targets(): sequence"))
     if trajectory is not None:
         poses, covariances = trajectory.poses, trajectory.covariances
     if poses is None:
         raise InputError("depth_targets() needs a trajectory or poses=(N, 4, 4) camera-to-world")
-    n = len(sequence)
     poses = check_poses(poses, n, "poses")
-    covs = np.zeros((n, 6, 6)) if covariances is None else np.asarray(covariances, np.float64)
-    if covs.shape != (n, 6, 6) or not np.isfinite(covs).all():
-        raise InputError(f"covariances must be finite with shape ({n}, 6, 6), got {covs.shape}")
+    covs = check_covariances(covariances, n)
     if neighbors < 0 or consistency_sigmas <= 0 or fill_min_views < 1:
         raise InputError("need neighbors >= 0, consistency_sigmas > 0 and fill_min_views >= 1")
 

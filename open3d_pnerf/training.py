@@ -253,28 +253,36 @@ class Trainer:
         atomic_write(self.checkpoint_path, lambda p: torch.save(self.state_dict(), p))
         return self.checkpoint_path
 
-    def load_checkpoint(self, path: str | Path) -> None:
-        """Resume from a checkpoint written by :meth:`save_checkpoint` (weights_only load)."""
-        state = safe_torch_load(path)
-        if state.get("version") != CHECKPOINT_VERSION:
-            raise CheckpointError(
-                f"{path}: checkpoint version {state.get('version')!r}, this library reads {CHECKPOINT_VERSION}"
-            )
+    def load_checkpoint(self, path: str | Path, state: dict | None = None) -> None:
+        """Resume from a checkpoint written by :meth:`save_checkpoint` (weights_only load).
+
+        state: the checkpoint's content when already read with :func:`read_checkpoint`.
+        """
+        state = read_checkpoint(path) if state is None else state
         try:
             self.field.load_state_dict(state["field"])
             self.optimizer.load_state_dict(state["optimizer"])
-        except (RuntimeError, ValueError, KeyError) as exc:
-            raise CheckpointError(f"{path}: does not match this model/config ({exc})") from None
-        self.generator.set_state(state["generator"])
-        self.batcher.restore(state["batcher"])
-        self.step, self.elapsed = int(state["step"]), float(state["elapsed"])
-        self.samples_seen = int(state["samples_seen"])
-        self.history = list(state["history"])
+            self.generator.set_state(state["generator"])
+            self.batcher.restore(state["batcher"])
+            self.step, self.elapsed = int(state["step"]), float(state["elapsed"])
+            self.samples_seen = int(state["samples_seen"])
+            self.history = list(state["history"])
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as exc:
+            raise CheckpointError(f"{path}: does not match this model/config ({type(exc).__name__}: {exc})") from None
 
 
 def _fused_adam_ok(field) -> bool:
     p = next(field.parameters())
     return p.device.type in ("cpu", "cuda") and p.dtype == torch.float32
+
+
+def read_checkpoint(path) -> dict:
+    """A training checkpoint's content, loaded safely (see :func:`safe_torch_load`) and version-checked."""
+    state = safe_torch_load(path)
+    version = state.get("version") if isinstance(state, dict) else None
+    if version != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {version!r}, this library reads {CHECKPOINT_VERSION}")
+    return state
 
 
 def safe_torch_load(path) -> dict:

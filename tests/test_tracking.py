@@ -254,15 +254,6 @@ def test_all_failed_raises_tracking_error(sample):
         track(seq, progress=False)
 
 
-def test_bad_inputs_raise_input_error(sample):
-    with pytest.raises(InputError, match="at least 2 frames"):
-        track(sample.select([0]), progress=False)
-    with pytest.raises(InputError, match="keyframe_every"):
-        track(sample, keyframe_every=0, progress=False)
-    with pytest.raises(InputError, match="RGBDSequence"):
-        track([sample[0], sample[1]], progress=False)
-
-
 # -- shared real data (skipped when ../shared/data is absent) ----------------------------------
 @pytest.mark.slow
 @pytest.mark.data

@@ -7,6 +7,7 @@ whose frames load lazily from the files.
 from __future__ import annotations
 
 import json
+import os
 import re
 import warnings
 from pathlib import Path
@@ -16,7 +17,7 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import DatasetError, InputError
-from .sequence import RGBDSequence, check_intrinsic, file_reader
+from .sequence import RGBDSequence, check_first_frame, check_intrinsic, check_poses, file_reader
 
 # TUM calibration of the (registered) colour camera, per Kinect; distortion is ignored.
 TUM_INTRINSICS = {
@@ -26,7 +27,6 @@ TUM_INTRINSICS = {
 }
 PRIMESENSE_DEFAULT = (525.0, 525.0, 319.5, 239.5)
 TUM_MAX_DT = 0.02  # seconds, as TUM's associate.py
-MEDIAN_DEPTH_LIMIT = 20.0  # metres: an indoor RGB-D median beyond this means a wrong depth scale
 
 
 def pinhole(width: int, height: int, fx: float, fy: float, cx: float, cy: float):
@@ -55,6 +55,8 @@ def load_sequence(
     (m, 0 = none) drops farther depth. stride keeps every stride-th frame, max_frames caps
     the count after striding. image_scale in (0, 1] resizes frames on load.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"path must be a folder path (str or pathlib.Path), got {type(path).__name__}")
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"dataset folder not found: {path}")
@@ -93,21 +95,6 @@ def load_sequence(
     )
     check_first_frame(seq)
     return seq
-
-
-def check_first_frame(seq: RGBDSequence) -> None:
-    """Load frame 0 to fail early on mismatched sizes, empty depth or a wrong depth scale."""
-    depth = seq[0].depth
-    valid = depth[depth > 0]
-    if valid.size == 0:
-        raise DatasetError(f"{seq.name}: frame 0 has no valid depth (all zero)")
-    median = float(np.median(valid))
-    if median > MEDIAN_DEPTH_LIMIT or median < 0.05:
-        raise DatasetError(
-            f"{seq.name}: median depth of frame 0 is {median:.3g} m, implausible for an RGB-D "
-            "camera; the depth scale is probably wrong (TUM uses 5000, 7-Scenes/Redwood 1000 "
-            "raw units per metre): pass depth_scale="
-        )
 
 
 # -- TUM RGB-D ------------------------------------------------------------------------------
@@ -154,8 +141,13 @@ def _tum(path: Path, intrinsic, depth_scale):
     pairs = associate(rgb_t, dep_t, TUM_MAX_DT)
     if not pairs:
         raise DatasetError(
-            f"{path}: no rgb/depth timestamps within {TUM_MAX_DT} s of each other; cannot "
-            "associate colour with depth"
+            f"{path}: no timestamps of rgb.txt and depth.txt within {TUM_MAX_DT} s of each other; "
+            "cannot associate colour with depth"
+        )
+    missing = [str(f) for i, j in pairs for f in (rgb_f[i], dep_f[j]) if not f.is_file()]
+    if missing:
+        raise DatasetError(
+            f"{path}: {len(missing)} image file(s) listed in rgb.txt/depth.txt do not exist: {missing[:3]}"
         )
     scale = depth_scale or 5000.0
     readers = [file_reader(rgb_f[i], dep_f[j], scale) for i, j in pairs]
@@ -180,7 +172,11 @@ def _interpolate_tum_groundtruth(path: Path, stamps: np.ndarray) -> np.ndarray |
         raise DatasetError(f"{path}: expected 'timestamp tx ty tz qx qy qz qw' lines ({exc})") from None
     if rows.ndim != 2 or rows.shape[1] != 8:
         raise DatasetError(f"{path}: expected 'timestamp tx ty tz qx qy qz qw' lines")
+    if not np.isfinite(rows).all() or (np.linalg.norm(rows[:, 4:8], axis=1) < 1e-6).any():
+        raise DatasetError(f"{path}: NaN/inf values or a zero quaternion (qx qy qz qw)")
     t = rows[:, 0]
+    if (np.diff(t) <= 0).any():
+        raise DatasetError(f"{path}: timestamps must increase from line to line")
     inside = (stamps >= t[0]) & (stamps <= t[-1])
     if not inside.all():
         warnings.warn(f"{path}: ground truth does not cover every frame; gt_poses left out")
@@ -203,15 +199,15 @@ def _seven_scenes(path: Path, intrinsic, depth_scale):
         color = next((c for c in (path / f"{stem}.color.png", path / f"{stem}.color.jpg") if c.is_file()), None)
         if color is None:
             raise DatasetError(f"{path}: {stem}.color.png/.jpg missing for {d.name}")
-        readers.append(_seven_scenes_reader(color, d, scale))
+        readers.append(file_reader(color, d, scale, invalid_raw=65535))  # 7-Scenes' invalid-depth mark
         pose_file = path / f"{stem}.pose.txt"
-        poses.append(_read_matrix(pose_file, (4, 4)) if pose_file.is_file() else None)
+        poses.append(_read_pose(pose_file) if pose_file.is_file() else None)
     gt = np.stack(poses) if all(p is not None for p in poses) else None
     intr_file = path / "camera-intrinsics.txt"
     if intrinsic is None:
         if intr_file.is_file():
             k = _read_matrix(intr_file, (3, 3))
-            intrinsic = pinhole(640, 480, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+            intrinsic = check_intrinsic(pinhole(640, 480, k[0, 0], k[1, 1], k[0, 2], k[1, 2]), str(intr_file))
         else:
             intrinsic = pinhole(640, 480, 585.0, 585.0, 320.0, 240.0)
     # 7-Scenes colour is not registered to depth: measured colour = 0.905 x depth image,
@@ -223,15 +219,8 @@ def _seven_scenes(path: Path, intrinsic, depth_scale):
     return readers, stamps, gt, intrinsic, color_intr, path.name
 
 
-def _seven_scenes_reader(color: Path, depth: Path, scale: float):
-    read = file_reader(color, depth, scale)
-
-    def reader():
-        c, d = read()
-        d[d >= 65535 / scale - 1e-6] = 0  # raw 7-Scenes marks invalid depth with 65535
-        return c, d
-
-    return reader
+def _read_pose(path: Path) -> np.ndarray:
+    return check_poses(_read_matrix(path, (4, 4))[None], 1, str(path))[0]
 
 
 def _read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
@@ -266,7 +255,7 @@ def _redwood(path: Path, intrinsic, depth_scale):
     readers = [file_reader(c, d, scale) for c, d in zip(colors, depths)]
     intrinsic = intrinsic or json_intrinsic
     logs = sorted(path.glob("*.log"))
-    poses = read_log_trajectory(logs[0]) if logs else None
+    poses = check_poses(read_log_trajectory(logs[0]), what=str(logs[0])) if logs else None
     if poses is not None and len(poses) != len(readers):
         warnings.warn(f"{logs[0]}: {len(poses)} poses for {len(readers)} frames; gt_poses left out")
         poses = None
@@ -281,12 +270,16 @@ def _find_intrinsic_json(path: Path, warn: bool = True):
         except (json.JSONDecodeError, UnicodeDecodeError):
             continue
         if isinstance(data, dict) and "intrinsic_matrix" in data:
-            k = np.asarray(data["intrinsic_matrix"], dtype=float)
-            if k.size != 9 or "width" not in data or "height" not in data:
-                raise DatasetError(f"{f}: expected width, height and a 9-value intrinsic_matrix")
-            k = k.reshape(3, 3).T  # Open3D stores it column-major
-            intr = pinhole(data["width"], data["height"], k[0, 0], k[1, 1], k[0, 2], k[1, 2])
-            return intr, data.get("depth_scale")
+            expected = f"{f}: expected integer width, height, a 9-value intrinsic_matrix and depth_scale > 0 (optional)"
+            try:
+                k = np.asarray(data["intrinsic_matrix"], dtype=float).reshape(3, 3).T  # Open3D stores it column-major
+                intr = pinhole(data["width"], data["height"], k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+                scale = None if data.get("depth_scale") is None else float(data["depth_scale"])
+                if scale is not None and not scale > 0:
+                    raise ValueError(scale)
+            except (KeyError, TypeError, ValueError):
+                raise DatasetError(expected) from None
+            return check_intrinsic(intr, str(f)), scale
     if warn:
         warnings.warn(f"{path}: no intrinsic JSON found, using the PrimeSense default 525/319.5/239.5")
     return pinhole(640, 480, *PRIMESENSE_DEFAULT), None

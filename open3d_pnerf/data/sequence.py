@@ -17,7 +17,10 @@ import open3d as o3d
 from ..errors import DatasetError, InputError, PoseError
 
 FrameReader = Callable[[], tuple[np.ndarray, np.ndarray]]
-"""Zero-argument callable returning (colour uint8 HxWx3, depth float32 HxW metres)."""
+"""Zero-argument callable returning (colour uint8 HxWx3, depth float32 HxW metres); an
+optional ``source`` attribute (str) names where the frame comes from in error messages."""
+
+MEDIAN_DEPTH_LIMIT = 20.0  # metres: an indoor RGB-D median beyond this means a wrong depth scale
 
 
 @dataclasses.dataclass
@@ -31,31 +34,54 @@ class Frame:
 
 
 def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    """Read an image file with OpenCV, raising DatasetError naming the file on failure."""
+    """Read an image file with OpenCV, raising DatasetError naming the file if it is missing,
+    unreadable or truncated (OpenCV decodes a truncated JPEG silently: its end marker is checked)."""
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"image file not found: {path}")
-    image = cv2.imread(str(path), flags)
-    if image is None or image.size == 0:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"image file not found: {path}") from None
+    except OSError as exc:
+        raise DatasetError(f"cannot read image file {path} ({exc})") from None
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
+    truncated_jpeg = data[:2] == b"\xff\xd8" and b"\xff\xd9" not in data[-4096:]
+    if image is None or image.size == 0 or truncated_jpeg:
         raise DatasetError(f"cannot decode image (unreadable or truncated): {path}")
     return image
 
 
-def file_reader(color_path: Path, depth_path: Path, depth_scale: float) -> FrameReader:
-    """A reader for a colour image file and a 16-bit depth PNG (value / depth_scale = m)."""
+def depth_in_metres(raw: np.ndarray, depth_scale: float, what: str) -> np.ndarray:
+    """Depth as float32 metres: uint16 is raw sensor units (divided by depth_scale), float is metres.
+
+    Any other type (8-bit or multi-channel images, other integers) raises DatasetError naming `what`.
+    """
+    raw = np.asarray(raw)
+    if raw.ndim == 2 and raw.dtype == np.uint16:
+        return raw.astype(np.float32) / np.float32(depth_scale)
+    if raw.ndim == 2 and raw.dtype in (np.float32, np.float64):
+        return raw.astype(np.float32)
+    raise DatasetError(
+        f"{what}: depth must be single-channel uint16 (raw units, divided by depth_scale) or "
+        f"float32/float64 metres, got {raw.dtype} with shape {raw.shape}"
+    )
+
+
+def file_reader(color_path: Path, depth_path: Path, depth_scale: float, invalid_raw: int | None = None) -> FrameReader:
+    """A reader for a colour image file and a depth image (see :func:`depth_in_metres`).
+
+    Raw depth values >= invalid_raw (e.g. 7-Scenes' 65535) are set to 0 (invalid). The
+    reader's ``source`` names both files, so errors about the frame can name them.
+    """
 
     def read() -> tuple[np.ndarray, np.ndarray]:
-        color = read_image(color_path, cv2.IMREAD_COLOR)
-        color = cv2.cvtColor(color, cv2.COLOR_BGR2RGB)
+        color = cv2.cvtColor(read_image(color_path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
         raw = read_image(depth_path, cv2.IMREAD_UNCHANGED)
-        if raw.ndim != 2 or raw.dtype not in (np.uint16, np.uint8, np.float32):
-            raise DatasetError(
-                f"depth image {depth_path} must be single-channel 16-bit (or float32), "
-                f"got dtype {raw.dtype} with shape {raw.shape}"
-            )
-        depth = raw.astype(np.float32) / np.float32(depth_scale)
+        depth = depth_in_metres(raw, depth_scale, str(depth_path))
+        if invalid_raw is not None:
+            depth[raw >= invalid_raw] = 0
         return color, depth
 
+    read.source = f"{color_path}, {depth_path}"
     return read
 
 
@@ -66,10 +92,14 @@ def check_intrinsic(intrinsic, what: str = "intrinsic") -> o3d.camera.PinholeCam
             f"{what} must be an open3d.camera.PinholeCameraIntrinsic, got {type(intrinsic).__name__}"
         )
     fx, fy = intrinsic.get_focal_length()
-    if intrinsic.width <= 0 or intrinsic.height <= 0 or not (fx > 0 and fy > 0):
+    cx, cy = intrinsic.get_principal_point()
+    w, h = intrinsic.width, intrinsic.height
+    if w <= 0 or h <= 0 or not (fx > 0 and fy > 0):
+        raise InputError(f"{what} must have positive width, height and focal lengths, got {w}x{h}, fx={fx}, fy={fy}")
+    if not (0 <= cx <= w and 0 <= cy <= h):
         raise InputError(
-            f"{what} must have positive width, height and focal lengths, got "
-            f"{intrinsic.width}x{intrinsic.height}, fx={fx}, fy={fy}"
+            f"{what}: principal point ({cx}, {cy}) lies outside the {w}x{h} image; is the intrinsic "
+            "for another image size?"
         )
     return intrinsic
 
@@ -81,9 +111,10 @@ def check_poses(poses, n: int | None = None, what: str = "poses") -> np.ndarray:
         raise PoseError(f"{what} must have shape (N, 4, 4), got {arr.shape}")
     if n is not None and arr.shape[0] != n:
         raise PoseError(f"{what} has {arr.shape[0]} poses for {n} frames")
+    at = lambda bad: f" at frames {np.flatnonzero(bad)[:10].tolist()}" if len(arr) > 1 else ""  # noqa: E731
     bad = ~np.isfinite(arr).all(axis=(1, 2))
     if bad.any():
-        raise PoseError(f"{what} contain NaN/inf at frames {np.flatnonzero(bad)[:10].tolist()}")
+        raise PoseError(f"{what} contain NaN/inf{at(bad)}")
     rot = arr[:, :3, :3]
     ortho = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(rot)
@@ -92,7 +123,7 @@ def check_poses(poses, n: int | None = None, what: str = "poses") -> np.ndarray:
     if bad.any():
         raise PoseError(
             f"{what} are not rigid transforms (rotation not orthonormal, det != 1 or last row "
-            f"not [0,0,0,1]) at frames {np.flatnonzero(bad)[:10].tolist()}"
+            f"not [0,0,0,1]){at(bad)}"
         )
     return arr
 
@@ -186,7 +217,7 @@ class RGBDSequence:
             raise IndexError(f"frame index {index} out of range for {n} frames")
         index = int(index) % n
         color, depth = self._readers[index]()
-        return Frame(*self._finish(color, depth, index), float(self.timestamps[index]), index)
+        return Frame(*self._finish(color, depth, self._describe(index)), float(self.timestamps[index]), index)
 
     def __iter__(self):
         return (self[i] for i in range(len(self)))
@@ -196,11 +227,15 @@ class RGBDSequence:
         gt = "with" if self.gt_poses is not None else "without"
         return f"RGBDSequence({self.name!r}, {len(self)} frames, {w}x{h}, {gt} GT poses)"
 
-    def _finish(self, color, depth, index):
+    def _describe(self, index: int) -> str:
+        """'<name> frame <i> (<source>)': the files (or images[i]) the frame comes from."""
+        source = getattr(self._readers[index], "source", None)
+        return f"{self.name} frame {index}" + (f" ({source})" if source else "")
+
+    def _finish(self, color, depth, where: str):
         """Validate a raw frame, apply colour registration size, truncation and scale."""
         color = np.asarray(color)
         depth = np.asarray(depth)
-        where = f"{self.name} frame {index}"
         if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8:
             raise DatasetError(f"{where}: colour must be uint8 (H, W, 3), got {color.dtype} {color.shape}")
         if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.floating):
@@ -218,8 +253,12 @@ class RGBDSequence:
                 f"{color_base.width}x{color_base.height}"
             )
         depth = depth.astype(np.float32, copy=True)
-        if not np.isfinite(depth).all() or (depth < 0).any():
-            raise DatasetError(f"{where}: depth has NaN/inf or negative values")
+        bad = ~np.isfinite(depth) | (depth < 0)
+        if bad.any():
+            raise DatasetError(
+                f"{where}: depth has {bad.sum()} NaN/inf or negative values; depth must be >= 0 metres "
+                "(0 marks missing depth)"
+            )
         if self.depth_trunc > 0:
             depth[depth > self.depth_trunc] = 0
         if self.image_scale != 1.0:
@@ -302,14 +341,16 @@ class RGBDSequence:
 
         images: list of ``o3d.geometry.RGBDImage`` (depth in metres, as made by
         ``create_from_color_and_depth(..., depth_scale=...)``) or of ``(color, depth)`` numpy
-        pairs: colour uint8 (H, W, 3), depth uint16 (divided by `depth_scale`) or float
+        pairs: colour uint8 (H, W, 3), depth uint16 (divided by `depth_scale`) or float32/64
         metres. intrinsic: the depth camera's ``o3d.camera.PinholeCameraIntrinsic``.
+        The frames are in memory, so all are checked here (not when first used).
         """
+        if not depth_scale > 0:
+            raise InputError(f"depth_scale must be > 0 (raw units per metre), got {depth_scale!r}")
         readers = []
         for i, image in enumerate(images):
             if isinstance(image, o3d.geometry.RGBDImage):
-                color = np.asarray(image.color)
-                depth = np.asarray(image.depth, dtype=np.float32)
+                color, depth = np.asarray(image.color), np.asarray(image.depth)
                 if color.ndim == 2 or color.dtype != np.uint8:
                     raise InputError(
                         f"images[{i}]: the RGBDImage colour is grey/float; create it with "
@@ -317,16 +358,47 @@ class RGBDSequence:
                     )
             elif isinstance(image, (tuple, list)) and len(image) == 2:
                 color, depth = (np.asarray(a) for a in image)
-                if depth.dtype.kind in "ui":
-                    depth = depth.astype(np.float32) / np.float32(depth_scale)
             else:
                 raise InputError(
                     f"images[{i}] must be an o3d.geometry.RGBDImage or a (color, depth) pair, "
                     f"got {type(image).__name__}"
                 )
-            readers.append(_constant_reader(np.array(color), np.array(depth)))
-        return cls(readers, intrinsic, timestamps, gt_poses, depth_trunc, name=name)
+            readers.append(_constant_reader(np.array(color), depth_in_metres(depth, depth_scale, f"images[{i}]"),
+                                            f"images[{i}]"))
+        seq = cls(readers, intrinsic, timestamps, gt_poses, depth_trunc, name=name)
+        for i in range(1, len(seq)):
+            seq[i]  # validates the frame
+        check_first_frame(seq)
+        return seq
 
 
-def _constant_reader(color: np.ndarray, depth: np.ndarray) -> FrameReader:
-    return lambda: (color, depth)
+def _constant_reader(color: np.ndarray, depth: np.ndarray, source: str) -> FrameReader:
+    def read():
+        return color, depth
+
+    read.source = source
+    return read
+
+
+def check_sequence(sequence, min_frames: int = 1, what: str = "sequence") -> RGBDSequence:
+    """Return `sequence` if it is an RGBDSequence of at least `min_frames` frames."""
+    if not isinstance(sequence, RGBDSequence):
+        raise InputError(f"{what} must be an RGBDSequence (see load_sequence), got {type(sequence).__name__}")
+    if len(sequence) < min_frames:
+        raise InputError(f"{what} has {len(sequence)} frame(s); at least {min_frames} frames are needed")
+    return sequence
+
+
+def check_first_frame(seq: RGBDSequence) -> None:
+    """Load frame 0 to fail early on mismatched sizes, empty depth or a wrong depth scale."""
+    depth = seq[0].depth
+    valid = depth[depth > 0]
+    if valid.size == 0:
+        raise DatasetError(f"{seq._describe(0)}: no valid depth (all zero)")
+    median = float(np.median(valid))
+    if median > MEDIAN_DEPTH_LIMIT or median < 0.05:
+        raise DatasetError(
+            f"{seq._describe(0)}: median depth is {median:.3g} m, implausible for an RGB-D camera; "
+            "the depth scale is probably wrong (TUM uses 5000, 7-Scenes/Redwood 1000 raw units per "
+            "metre): pass depth_scale="
+        )

@@ -9,7 +9,7 @@ import numpy as np
 import open3d as o3d
 from tqdm.auto import tqdm
 
-from ..data.sequence import RGBDSequence
+from ..data.sequence import RGBDSequence, check_sequence
 from ..errors import InputError, TrackingError
 from .covariance import pose_graph_covariances
 from .odometry import FrameRegistration, OdometryOptions, PairResult
@@ -65,11 +65,7 @@ def track(
     (None = "CPU:0"). progress: show tqdm progress bars. Returns a :class:`Trajectory`;
     raises TrackingError when no registration succeeds at all.
     """
-    if not isinstance(sequence, RGBDSequence):
-        raise InputError(f"sequence must be an RGBDSequence, got {type(sequence).__name__}")
-    n = len(sequence)
-    if n < 2:
-        raise InputError(f"track() needs a sequence of at least 2 frames, got {n}")
+    n = len(check_sequence(sequence, 2, "track(): sequence"))
     if not isinstance(keyframe_every, (int, np.integer)) or keyframe_every < 1:
         raise InputError(f"keyframe_every must be an integer >= 1, got {keyframe_every!r}")
     if not point_noise_m > 0:
