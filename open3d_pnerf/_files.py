@@ -2,23 +2,41 @@
 
 import os
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Mapping
+
+Writer = Callable[[str], object]
+"""Writes one file at the path it is given; returning False (Open3D's convention) is a failure."""
 
 
-def atomic_write(path, write: Callable[[str], object]) -> None:
+def atomic_write(path, write: Writer) -> None:
     """Call write(tmp_path) for a temporary file beside `path`, fsync it, rename it over `path`.
 
-    The temporary name keeps the suffix (Open3D and NumPy pick formats by it). A writer
-    returning False (Open3D's convention for failure) raises OSError; `path` is untouched.
+    The temporary name keeps the suffix (Open3D and NumPy pick formats by it). On any
+    failure (an exception, Ctrl-C, or a writer returning False: OSError) `path` is untouched
+    and the temporary file is removed.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
+    atomic_write_all({path: write})
+
+
+def atomic_write_all(writes: Mapping[object, Writer]) -> None:
+    """Write several files so that a failure in any writer leaves every target untouched.
+
+    Every writer first writes (and fsyncs) a temporary file beside its target; only when all
+    have succeeded are the temporaries renamed over the targets. Temporaries never outlive
+    the call.
+    """
+    temps: dict[Path, Path] = {}
     try:
-        if write(str(tmp)) is False:
-            raise OSError(f"could not write {path}")
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        for path, write in writes.items():
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = temps[path] = path.with_name(f".tmp-{os.getpid()}-{path.name}")
+            if write(str(tmp)) is False:
+                raise OSError(f"could not write {path}")
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+        for path, tmp in temps.items():
+            os.replace(tmp, path)
     finally:
-        tmp.unlink(missing_ok=True)
+        for tmp in temps.values():
+            tmp.unlink(missing_ok=True)

@@ -18,7 +18,7 @@ import open3d as o3d
 import torch
 from tqdm.auto import tqdm
 
-from ._files import atomic_write
+from ._files import atomic_write_all
 from .config import ReconstructionConfig
 from .data.loaders import write_log_trajectory, write_tum_trajectory
 from .data.sequence import RGBDSequence, check_intrinsic, check_poses, check_sequence, scale_intrinsic
@@ -170,7 +170,11 @@ class Reconstruction:
 
     # -- persistence -------------------------------------------------------------------
     def save(self, directory) -> Path:
-        """Write weights, config, poses, covariances, trajectories, mesh.ply, point_cloud.ply."""
+        """Write weights, config, poses, covariances, trajectories, mesh.ply, point_cloud.ply.
+
+        Every file goes to a temporary first and all are renamed at the end, so a failure or
+        Ctrl-C while saving leaves the folder's previous files intact.
+        """
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
         intr = self.intrinsic
@@ -186,21 +190,27 @@ class Reconstruction:
             "stats": self.stats,
         }
         weights = {k: v.cpu() for k, v in self.field.state_dict().items()}
-        atomic_write(d / "model.pt", lambda p: torch.save(weights, p))
-        atomic_write(d / "reconstruction.json", lambda p: Path(p).write_text(json.dumps(meta, indent=1)))
-        for name, arr in (("poses", self.poses), ("covariances", self.covariances)):
-            atomic_write(d / f"{name}.npy", lambda p, a=arr: np.save(p, a))
-        write_tum_trajectory(d / "trajectory_tum.txt", self.poses, self.timestamps)
-        write_log_trajectory(d / "trajectory.log", self.poses)
+        writes = {
+            d / "model.pt": lambda p: torch.save(weights, p),
+            d / "reconstruction.json": lambda p: Path(p).write_text(json.dumps(meta, indent=1)),
+            d / "poses.npy": lambda p: np.save(p, self.poses),
+            d / "covariances.npy": lambda p: np.save(p, self.covariances),
+            d / "trajectory_tum.txt": lambda p: write_tum_trajectory(p, self.poses, self.timestamps),
+            d / "trajectory.log": lambda p: write_log_trajectory(p, self.poses),
+        }
+        empty = []
         for name, geometry, write in (
             ("mesh.ply", self.mesh, lambda p: write_mesh_ply(p, self.mesh)),
             ("point_cloud.ply", self.point_cloud, lambda p: write_point_cloud_ply(p, self.point_cloud, self.point_sigma)),
         ):
             if geometry is not None and not geometry.is_empty():
-                write(d / name)
+                writes[d / name] = write
             else:
-                (d / name).unlink(missing_ok=True)  # never leave a stale file from an earlier run
-                warnings.warn(f"{name} not written: the model has no confident surface yet (train longer)")
+                empty.append(name)
+        atomic_write_all(writes)
+        for name in empty:
+            (d / name).unlink(missing_ok=True)  # never leave a stale file from an earlier run
+            warnings.warn(f"{name} not written: the model has no confident surface yet (train longer)")
         return d
 
     @classmethod

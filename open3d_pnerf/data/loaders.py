@@ -16,6 +16,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation, Slerp
 
+from .._files import atomic_write
 from ..errors import DatasetError, InputError
 from .sequence import RGBDSequence, check_first_frame, check_intrinsic, check_poses, file_reader
 
@@ -301,19 +302,20 @@ def read_log_trajectory(path) -> np.ndarray:
 
 
 def write_log_trajectory(path, poses: np.ndarray) -> None:
-    """Write (N, 4, 4) camera-to-world poses as a Redwood/Open3D ``.log`` trajectory."""
+    """Write (N, 4, 4) camera-to-world poses as a Redwood/Open3D ``.log`` trajectory, atomically."""
     lines = []
     for i, pose in enumerate(np.asarray(poses)):
         lines.append(f"{i} {i} {i + 1}")
         lines += [" ".join(f"{v:.10f}" for v in row) for row in pose]
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write(path, lambda p: Path(p).write_text("\n".join(lines) + "\n"))
 
 
 def write_tum_trajectory(path, poses: np.ndarray, timestamps: np.ndarray) -> None:
-    """Write (N, 4, 4) camera-to-world poses as TUM 'timestamp tx ty tz qx qy qz qw' lines."""
+    """Write (N, 4, 4) camera-to-world poses as TUM 'timestamp tx ty tz qx qy qz qw' lines, atomically."""
     quats = Rotation.from_matrix(np.asarray(poses)[:, :3, :3]).as_quat()
     lines = [
         f"{t:.6f} " + " ".join(f"{v:.7f}" for v in (*p[:3, 3], *q))
         for t, p, q in zip(timestamps, poses, quats)
     ]
-    Path(path).write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")
+    text = "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n"
+    atomic_write(path, lambda p: Path(p).write_text(text))
