@@ -18,7 +18,7 @@ from .data.sequence import RGBDSequence
 from .errors import InputError
 from .evaluation import geometry_metrics, heldout_renders, score_renders
 from .export import write_mesh_ply
-from .reconstruction import Reconstruction, reconstruct
+from .reconstruction import Reconstruction, evenly_spaced, reconstruct
 
 
 @dataclasses.dataclass
@@ -71,7 +71,8 @@ class Comparison:
 
 def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | None = None, poses=None,
                       covariances=None, reconstruction: Reconstruction | None = None, reference=None,
-                      figure_frames: int = 2, voxel_size: float = 0.01, progress: bool = True) -> Comparison:
+                      figure_frames: int = 2, voxel_size: float = 0.01, weight_threshold: float = 3.0,
+                      progress: bool = True) -> Comparison:
     """Train (or take) a model and fuse the TSDF baseline on the same frames; compare them.
 
     sequence: the RGB-D sequence the model was (or is to be) trained on. config: for
@@ -79,8 +80,10 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
     trained `reconstruction` of this sequence is given. poses/covariances: as for
     reconstruct(). reference: a ground-truth ``o3d.geometry.TriangleMesh`` or
     ``PointCloud`` (world frame of the poses) for geometry metrics. voxel_size: TSDF voxel
-    (m), truncation 4 voxels. Both are rendered at the held-out poses at the training
-    resolution.
+    (m), truncation 4 voxels. weight_threshold: the TSDF keeps voxels seen by more training
+    frames than this (3.0, Open3D's default, suits dense video; with a few sparse views most
+    surfaces are seen by fewer frames and vanish: use 0.5). Both are rendered at the
+    held-out poses at the training resolution.
     """
     if not isinstance(sequence, RGBDSequence):
         raise InputError(f"sequence must be an RGBDSequence, got {type(sequence).__name__}")
@@ -99,7 +102,7 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
     train = train.rescaled(train.image_scale * recon.config.image_scale)
     depth_max = float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))  # nothing in the box is farther
     tsdf = tsdf_fusion(train, recon.poses[recon.train_indices], voxel_size=voxel_size, sdf_trunc=4 * voxel_size,
-                       depth_max=depth_max, return_volume=True, progress=progress)
+                       depth_max=depth_max, return_volume=True, progress=progress, weight_threshold=weight_threshold)
     renders = list(heldout_renders(recon, sequence, tsdf)) if len(recon.holdout_indices) else []
     table = score_renders(renders) if renders else {"model": {}, "tsdf": {}}
     if reference is not None:
@@ -108,13 +111,8 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
                 warnings.warn(f"{name} has no mesh: geometry metrics skipped")
                 continue
             table[name].update({k: round(v, 5) for k, v in geometry_metrics(mesh, reference).items()})
-    shown = [renders[i] for i in _spread(len(renders), figure_frames)]
+    shown = [renders[i] for i in evenly_spaced(len(renders), figure_frames)]
     return Comparison(table, recon, tsdf, [comparison_figure(r) for r in shown], [r["index"] for r in shown])
-
-
-def _spread(n: int, k: int) -> list[int]:
-    """k indices evenly spread over range(n) (fewer if n < k)."""
-    return sorted({int(round(x)) for x in np.linspace(0, n - 1, min(k, n))}) if n else []
 
 
 def comparison_figure(item: dict):

@@ -72,8 +72,14 @@ class ReconstructionConfig:
     point_noise_m: float = 2.0
     """Noise scale of the pose-graph covariances in tracking (see tracking.DEFAULT_POINT_NOISE_M:
     2.0 matches the covariances to the measured pose errors on TUM fr1/xyz)."""
+    calibrate_depth_sigma: bool = True
+    """After training, scale the model's depth spread so that 68.3% of training-view depth
+    errors fall within 1 sigma (Reconstruction.calibrate_depth_sigma)."""
     export_scale: float = 0.5
     """Resolution of the renders used for mesh and point-cloud export, relative to training."""
+    export_max_views: int = 48
+    """Render at most this many training views (evenly spaced) for export: bounds its time
+    and memory on long sequences."""
     mesh_voxel_size: float = 0.01
     """Voxel size (m) of the TSDF that fuses rendered depth into the exported mesh."""
     max_point_std: float = 0.1
@@ -158,9 +164,12 @@ class ReconstructionConfig:
             ("cache_frames", count, "an int >= 1"),
             ("point_noise_m", lambda v: number(v) and v > 0, "a number > 0"),
             ("export_scale", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
+            ("export_max_views", count, "an int >= 1"),
             ("mesh_voxel_size", lambda v: number(v) and v > 0, "a number > 0 (metres)"),
             ("max_point_std", lambda v: number(v) and v > 0, "a number > 0 (metres)"),
             ("min_opacity", lambda v: number(v) and 0 <= v <= 1, "a number in [0, 1]"),
+            *[(name, lambda v: isinstance(v, bool), "True or False")
+              for name in ("depth_guided_sampling", "coarse_loss", "calibrate_depth_sigma", "progress")],
             ("device", lambda v: isinstance(v, str) and v.split(":")[0] in ("cpu", "cuda", "mps"),
              '"cpu", "cuda" or "cuda:N"'),
         ]

@@ -9,6 +9,8 @@ intrinsic, frame split), ``model.pt`` (weights only), ``poses.npy``, ``covarianc
 from __future__ import annotations
 
 import json
+import shutil
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -37,6 +39,8 @@ from .targets import DepthTargets, check_covariances, depth_targets
 from .training import RayBatcher, Trainer, read_checkpoint, render_field, safe_torch_load, sampling_of
 
 FORMAT_VERSION = 1
+TARGET_BYTES_PER_PIXEL = 11  # DepthTargets: mean, sigma (float32), valid, support, filled (1 byte)
+TARGETS_IN_RAM_MAX_BYTES = 512 * 2**20
 META_KEYS = ("format_version", "config", "aabb", "intrinsic", "train_indices", "holdout_indices", "timestamps")
 
 
@@ -58,6 +62,11 @@ def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: floa
     return np.stack([lo - margin, hi + margin]).astype(np.float32)
 
 
+def evenly_spaced(n: int, k: int) -> np.ndarray:
+    """Indices of min(k, n) items evenly spread over range(n), first and last included."""
+    return np.unique(np.round(np.linspace(0, n - 1, min(k, n))).astype(int)) if n and k else np.zeros(0, int)
+
+
 def split_frames(n: int, holdout_every: int, train_views: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(train, holdout) frame indices: every holdout_every-th frame (0, k, 2k, ...) held out;
     train_views > 0 keeps that many of the others, evenly spaced (the held-out set is unchanged)."""
@@ -69,7 +78,7 @@ def split_frames(n: int, holdout_every: int, train_views: int = 0) -> tuple[np.n
     if train_views:
         if train_views > len(train):
             raise InputError(f"train_views={train_views} but only {len(train)} frames are not held out")
-        train = train[np.round(np.linspace(0, len(train) - 1, train_views)).astype(int)]
+        train = train[evenly_spaced(len(train), train_views)]
     return train, idx[hold]
 
 
@@ -78,12 +87,13 @@ class Reconstruction:
 
     poses (N, 4, 4) camera-to-world and covariances (N, 6, 6) cover every frame of the
     input sequence; train_indices / holdout_indices say which trained. intrinsic is the
-    training-resolution ``o3d.camera.PinholeCameraIntrinsic``.
+    training-resolution ``o3d.camera.PinholeCameraIntrinsic``. depth_sigma_scale turns the
+    model's depth spread into a calibrated 1-sigma error (see calibrate_depth_sigma).
     """
 
     def __init__(self, field, config: ReconstructionConfig, poses, covariances, intrinsic, aabb,
                  train_indices, holdout_indices, timestamps=None, mesh=None, point_cloud=None,
-                 point_sigma=None, stats=None):
+                 point_sigma=None, stats=None, depth_sigma_scale: float = 1.0):
         self.field = field
         self.config = config
         self.poses = np.asarray(poses, np.float64)
@@ -97,6 +107,7 @@ class Reconstruction:
         self.point_cloud = point_cloud
         self.point_sigma = point_sigma
         self.stats = stats or {}
+        self.depth_sigma_scale = float(depth_sigma_scale)
 
     @property
     def device(self) -> torch.device:
@@ -111,8 +122,8 @@ class Reconstruction:
 
         intrinsic: an ``o3d.camera.PinholeCameraIntrinsic`` (default: the training one).
         Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m,
-        depth_std (H, W) m (the spread of the model's depth distribution along each ray),
-        opacity (H, W) in [0, 1].
+        depth_std (H, W) m (the spread of the model's depth distribution along each ray,
+        times depth_sigma_scale: a calibrated 1-sigma error), opacity (H, W) in [0, 1].
         """
         intrinsic = check_intrinsic(intrinsic or self.intrinsic)
         h, w = intrinsic.height, intrinsic.width
@@ -123,7 +134,7 @@ class Reconstruction:
         return {
             "color": out["color"].clamp(0, 1).view(h, w, 3).cpu().numpy(),
             "depth": (out["depth"] / norms).view(h, w).cpu().numpy(),
-            "depth_std": (out["depth_var"].sqrt() / norms).view(h, w).cpu().numpy(),
+            "depth_std": (out["depth_var"].sqrt() / norms * self.depth_sigma_scale).view(h, w).cpu().numpy(),
             "opacity": out["opacity"].view(h, w).cpu().numpy(),
         }
 
@@ -150,6 +161,37 @@ class Reconstruction:
         return {"z": (out["t"] / norms).cpu().numpy(), "edges": edges.cpu().numpy(), "mass": mass.cpu().numpy(),
                 "pdf": pdf.cpu().numpy(), "opacity": out["opacity"].cpu().numpy()}
 
+    def calibrate_depth_sigma(self, sequence: RGBDSequence, coverage: float = 0.683, frames: int = 8,
+                              pixels: int = 1024) -> float:
+        """Fit depth_sigma_scale so that `coverage` of training-view depth errors lie within 1 sigma.
+
+        The raw spread of the weights along a ray is set as much by sample spacing and grid
+        blur as by the data, so it is not an error bar by itself; one scale fitted on the
+        training frames makes it one (held-out frames are never used). sequence: the input
+        sequence (all frames, as given to reconstruct()); up to `frames` training frames are
+        read at the training resolution and `pixels` random pixels of each with sensor depth
+        and opacity > 0.5 are rendered. Sets and returns depth_sigma_scale (1.0 if no pixel).
+        """
+        train = self.train_indices[evenly_spaced(len(self.train_indices), frames)]
+        seq = sequence.select(train)
+        seq = seq.rescaled(seq.image_scale * self.config.image_scale)
+        rng = np.random.default_rng(self.config.seed + 2)
+        ratios = []
+        for k, i in enumerate(train):
+            depth = seq[k].depth.reshape(-1)
+            pix = np.flatnonzero(depth > 0)
+            pix = rng.choice(pix, min(pixels, len(pix)), replace=False)
+            w = seq.image_size[1]
+            uv = torch.as_tensor(np.stack([pix % w, pix // w], 1), dtype=torch.float32, device=self.device)
+            rays = self._rays(self.poses[i], seq.intrinsic, uv[:, 0], uv[:, 1])
+            out = render_field(self.field, rays, sampling_of(self.config))
+            z, std = (out["depth"] / rays.norms).cpu().numpy(), (out["depth_var"].sqrt() / rays.norms).cpu().numpy()
+            ok = out["opacity"].cpu().numpy() > 0.5
+            ratios.append(np.abs(z - depth[pix])[ok] / np.maximum(std[ok], 1e-6))
+        ratios = np.concatenate(ratios) if ratios else np.zeros(0)
+        self.depth_sigma_scale = float(np.quantile(ratios, coverage)) if ratios.size else 1.0
+        return self.depth_sigma_scale
+
     def _rays(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic, u: torch.Tensor, v: torch.Tensor) -> Rays:
         """Rays of pixels (u, v) (R,) from a camera-to-world pose (4, 4), clipped to the scene box."""
         pose = check_poses(np.asarray(pose)[None], 1, "pose")[0]
@@ -157,11 +199,12 @@ class Reconstruction:
         return make_rays(torch.as_tensor(pose, dtype=torch.float32, device=self.device), K, u, v, self.field.aabb)
 
     def export_geometry(self, progress: bool = True) -> None:
-        """Render the training views at export_scale and rebuild .mesh, .point_cloud, .point_sigma."""
+        """Render training views (at most export_max_views, evenly spaced) at export_scale and
+        rebuild .mesh, .point_cloud, .point_sigma."""
         cfg = self.config
         intr = scale_intrinsic(self.intrinsic, cfg.export_scale)
         K = np.asarray(intr.intrinsic_matrix)
-        poses = self.poses[self.train_indices]
+        poses = self.poses[self.train_indices[evenly_spaced(len(self.train_indices), cfg.export_max_views)]]
         renders = [self.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
         self.point_cloud, self.point_sigma = point_cloud_from_renders(
             renders, poses, K, cfg.min_opacity, cfg.max_point_std, voxel_size=cfg.mesh_voxel_size / 2
@@ -188,6 +231,7 @@ class Reconstruction:
             "holdout_indices": self.holdout_indices.tolist(),
             "timestamps": self.timestamps.tolist(),
             "stats": self.stats,
+            "depth_sigma_scale": self.depth_sigma_scale,
         }
         weights = {k: v.cpu() for k, v in self.field.state_dict().items()}
         writes = {
@@ -248,7 +292,8 @@ class Reconstruction:
         mesh = _read_ply(d / "mesh.ply", lambda p: o3d.io.read_triangle_mesh(str(p)))
         cloud, sigma = _read_ply(d / "point_cloud.ply", read_point_cloud_ply) or (None, None)
         return cls(field, config, _load_array(d / "poses.npy", (n, 4, 4)), _load_array(d / "covariances.npy", (n, 6, 6)),
-                   intr, aabb, *indices, timestamps, mesh, cloud, sigma, meta.get("stats"))
+                   intr, aabb, *indices, timestamps, mesh, cloud, sigma, meta.get("stats"),
+                   float(meta.get("depth_sigma_scale", 1.0)))
 
 
 def _read_meta(path: Path) -> dict:
@@ -346,8 +391,13 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     train_seq = rgbd_sequence.select(train_idx)
     train_seq = train_seq.rescaled(train_seq.image_scale * config.image_scale)
     # built for every loss: they also bound the scene box (photometric ignores them in the loss)
+    h, w = train_seq.image_size
+    storage = None  # long sequences keep their targets in memory-mapped files, not in RAM
+    if len(train_idx) * h * w * TARGET_BYTES_PER_PIXEL > TARGETS_IN_RAM_MAX_BYTES:
+        storage = Path(checkpoint_dir) / "targets" if checkpoint_dir else Path(
+            tempfile.mkdtemp(prefix="pnerf-targets-"))
     targets = depth_targets(train_seq, poses=poses[train_idx], covariances=covariances[train_idx],
-                            progress=config.progress)
+                            storage_dir=storage, progress=config.progress)
     K = train_seq.K
     aabb = scene_box(targets, poses[train_idx], K)
     timings["targets_s"] = round(time.perf_counter() - t1, 2)
@@ -361,15 +411,23 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir)
     if checkpoint is not None:
         trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt", checkpoint)
-    train_stats = trainer.train()
+    try:
+        train_stats = trainer.train()
+        history = trainer.history
+    finally:
+        targets_summary = targets.summary()
+        if storage is not None:  # the model has learned them; do not leave gigabytes behind
+            del batcher, trainer, targets
+            shutil.rmtree(storage, ignore_errors=True)
     stages.update(1)
 
     stages.set_postfix_str("export")
     t2 = time.perf_counter()
     recon = Reconstruction(field, config, poses, covariances, train_seq.intrinsic, aabb, train_idx, hold_idx,
                            rgbd_sequence.timestamps,
-                           stats={"training": train_stats, "history": trainer.history,
-                                  "targets": targets.summary()})
+                           stats={"training": train_stats, "history": history, "targets": targets_summary})
+    if config.calibrate_depth_sigma:
+        recon.calibrate_depth_sigma(rgbd_sequence)
     recon.export_geometry(progress=config.progress)
     timings["export_s"] = round(time.perf_counter() - t2, 2)
     timings["total_s"] = round(time.perf_counter() - t0, 2)

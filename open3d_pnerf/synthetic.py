@@ -106,7 +106,8 @@ class SyntheticScene:
         no surface), cos_incidence (H, W) |cos| between ray and surface normal.
         """
         intrinsic = check_intrinsic(intrinsic)
-        K = np.asarray(intrinsic.intrinsic_matrix)
+        K = np.array(intrinsic.intrinsic_matrix, float)
+        K[:2, 2] += 0.5  # Open3D casts through (u + 0.5, v + 0.5); the library's pixel centres are integers
         rays = self._scene.create_rays_pinhole(
             o3d.core.Tensor(K), o3d.core.Tensor(np.linalg.inv(pose)), intrinsic.width, intrinsic.height
         )
@@ -119,32 +120,31 @@ class SyntheticScene:
         normals = hits["primitive_normals"].numpy()
         view = rays[..., 3:] / np.linalg.norm(rays[..., 3:], axis=-1, keepdims=True)
         cos = np.abs((normals * view).sum(-1))
-        ids = np.where(hit, hits["geometry_ids"].numpy().astype(np.int64), -1)
+        ids = hits["geometry_ids"].numpy()[hit].astype(np.int64)
+        base, freqs, phases = (np.stack(a)[ids] for a in zip(*self.albedo))  # per hit pixel
+        pattern = np.sin((freqs * points[hit][:, None]).sum(-1) * 2 * np.pi + phases).mean(-1)
+        shade = 0.6 + 0.4 * np.abs(normals[hit] @ np.array([0.3, 0.5, 0.81]))  # a fixed distant light
         color = np.zeros(depth.shape + (3,), np.float32)
-        light = np.array([0.3, 0.5, 0.81])
-        for k, (base, freqs, phases) in enumerate(self.albedo):
-            m = ids == k
-            if m.any():
-                p = points[m]
-                pattern = np.sin(p @ freqs.T * 2 * np.pi + phases).mean(-1)  # solid texture in [-1, 1]
-                shade = 0.6 + 0.4 * np.abs(normals[m] @ light)
-                color[m] = np.clip(base * (0.6 + 0.4 * pattern)[:, None] * shade[:, None], 0, 1)
+        color[hit] = np.clip(base * ((0.6 + 0.4 * pattern) * shade)[:, None], 0, 1)  # solid texture
         return {"color": color, "depth": depth, "cos_incidence": cos.astype(np.float32)}
 
     def visible_points(self, poses: np.ndarray, intrinsic: o3d.camera.PinholeCameraIntrinsic,
                        voxel_size: float = 0.01) -> o3d.geometry.PointCloud:
         """The ground-truth surface seen by the cameras `poses` (N, 4, 4): exact hit points,
-        voxel-downsampled. The reference for completeness (unseen surfaces do not count)."""
+        one per `voxel_size` voxel (a hit point, not a voxel average, so every point lies on
+        the surface). The reference for completeness (unseen surfaces do not count)."""
         K = np.asarray(intrinsic.intrinsic_matrix)
         v, u = np.mgrid[0:intrinsic.height, 0:intrinsic.width]
         rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1)
-        cloud = o3d.geometry.PointCloud()
+        kept, keys = np.zeros((0, 3)), np.zeros(0, np.int64)
         for pose in check_poses(poses):
             depth = self.render(pose, intrinsic)["depth"]
             pts = (rays * depth[..., None])[depth > 0] @ pose[:3, :3].T + pose[:3, 3]
-            cloud += o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-            cloud = cloud.voxel_down_sample(voxel_size)
-        return cloud
+            cell = np.floor(pts / voxel_size).astype(np.int64) + (1 << 20)  # voxel index >= 0 (to 10 km at 1 cm)
+            new_keys = (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
+            keys, first = np.unique(np.concatenate([keys, new_keys]), return_index=True)  # first hit per voxel
+            kept = np.concatenate([kept, pts])[first]
+        return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kept))
 
 
 def room_scene(seed: int = 0, room_size: tuple[float, float, float] = (4.0, 5.0, 2.6)) -> SyntheticScene:
@@ -190,8 +190,10 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera-to-world (4, 4), OpenCV axes (x right, y down, z forward), at `eye` facing `target`."""
     eye, target = np.asarray(eye, float), np.asarray(target, float)
     z = target - eye
-    z /= np.linalg.norm(z)
     x = np.cross(z, up)
+    if not np.linalg.norm(x) > 1e-9 * np.linalg.norm(z) > 0:  # also catches NaN
+        raise InputError(f"look_at: the view direction {target - eye} is zero or parallel to up={up}; pass another up")
+    z /= np.linalg.norm(z)
     x /= np.linalg.norm(x)
     pose = np.eye(4)
     pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
@@ -246,7 +248,7 @@ def synthetic_sequence(n_frames: int = 40, width: int = 320, height: int = 240, 
     """
     if n_frames < 1 or width < 8 or height < 8:
         raise InputError(f"synthetic_sequence needs n_frames >= 1 and images >= 8x8, got {n_frames}, {width}x{height}")
-    if min(pose_noise) < 0 or len(pose_noise) != 2:
+    if np.shape(pose_noise) != (2,) or not (np.min(pose_noise) >= 0 and np.isfinite(pose_noise).all()):
         raise InputError(f"pose_noise must be (rotation std rad, translation std m) >= 0, got {pose_noise}")
     noise = DepthNoise() if noise is None else noise
     scene = scene or room_scene(seed)

@@ -511,3 +511,26 @@ def test_shared_redwood(shared_data):
     depth = seq[0].depth
     assert depth[depth > 0].min() == pytest.approx(0.96, abs=0.02)
     assert depth.max() == pytest.approx(2.70, abs=0.02)
+
+
+def test_write_sequence_round_trips_through_load_sequence(tmp_path):
+    from open3d_pnerf.data.loaders import write_sequence
+    from open3d_pnerf.synthetic import synthetic_sequence
+
+    seq = synthetic_sequence(3, 64, 48).sequence
+    folder = write_sequence(seq, tmp_path / "seq", depth_scale=1000.0)
+    back = load_sequence(folder)
+    assert len(back) == 3 and back.image_size == (48, 64)
+    np.testing.assert_allclose(back.K, seq.K)
+    np.testing.assert_allclose(back.gt_poses, seq.gt_poses, atol=1e-9)
+    for i in range(3):
+        np.testing.assert_allclose(back[i].depth, seq[i].depth, atol=0.5e-3 + 1e-6)  # 1 mm steps
+        np.testing.assert_array_equal(back[i].color, seq[i].color)
+
+
+def test_write_sequence_refuses_depth_that_overflows_16_bits(tmp_path):
+    from open3d_pnerf.data.loaders import write_sequence
+    from open3d_pnerf.synthetic import synthetic_sequence
+
+    with pytest.raises(InputError, match="overflows 16 bits"):
+        write_sequence(synthetic_sequence(1, 64, 48).sequence, tmp_path / "seq", depth_scale=50000.0)

@@ -429,3 +429,82 @@ def test_load_rejects_a_malicious_model_file(saved, tmp_path):
     with pytest.raises(CheckpointError, match="model.pt"):
         Reconstruction.load(d)
     assert not marker.exists()
+
+
+# -- depth-sigma calibration ---------------------------------------------------------------------
+@pytest.mark.slow
+def test_depth_std_is_the_model_spread_times_the_calibration_scale(recon):
+    pose = recon.poses[recon.train_indices[0]]
+    scale = recon.depth_sigma_scale
+    try:
+        recon.depth_sigma_scale = 1.0
+        raw = recon.render(pose)
+        recon.depth_sigma_scale = 2.5
+        scaled = recon.render(pose)
+    finally:
+        recon.depth_sigma_scale = scale
+    np.testing.assert_allclose(scaled["depth_std"], 2.5 * raw["depth_std"], rtol=1e-5)
+    np.testing.assert_array_equal(scaled["depth"], raw["depth"])
+
+
+@pytest.mark.slow
+def test_calibration_puts_68_percent_of_training_depth_errors_within_one_sigma(recon, sample):
+    scale = recon.depth_sigma_scale
+    try:
+        fitted = recon.calibrate_depth_sigma(sample)
+        assert fitted == recon.depth_sigma_scale and 0 < fitted < 10
+        train = sample.select(recon.train_indices).rescaled(recon.config.image_scale)
+        inside = []
+        for k, i in enumerate(recon.train_indices):  # every pixel, not only the fitted subset
+            out, depth = recon.render(recon.poses[i]), train[k].depth
+            ok = (depth > 0) & (out["opacity"] > 0.5)
+            inside.append(np.abs(out["depth"] - depth)[ok] <= out["depth_std"][ok])
+        assert abs(np.concatenate(inside).mean() - 0.683) < 0.05
+    finally:
+        recon.depth_sigma_scale = scale
+
+
+@pytest.mark.slow
+def test_saved_reconstruction_keeps_its_calibration(recon, saved):
+    assert recon.depth_sigma_scale != 1.0  # reconstruct() calibrates by default
+    assert Reconstruction.load(saved).depth_sigma_scale == pytest.approx(recon.depth_sigma_scale)
+
+
+# -- long sequences: memory-mapped targets, bounded export ---------------------------------------
+@pytest.mark.slow
+def test_large_targets_go_to_memory_mapped_files_that_are_removed_after_training(sample, tmp_path, monkeypatch):
+    import open3d_pnerf.reconstruction as rec
+
+    used = []
+    real = rec.depth_targets
+
+    def spy(*args, storage_dir=None, **kwargs):
+        used.append(storage_dir)
+        targets = real(*args, storage_dir=storage_dir, **kwargs)
+        assert isinstance(targets.mean, np.memmap)
+        return targets
+
+    monkeypatch.setattr(rec, "TARGETS_IN_RAM_MAX_BYTES", 0)
+    monkeypatch.setattr(rec, "depth_targets", spy)
+    cfg = ReconstructionConfig.preset("test", max_steps=5, progress=False, calibrate_depth_sigma=False)
+    result = reconstruct(sample.select(range(4)), cfg, poses=sample.gt_poses[:4], checkpoint_dir=tmp_path / "ckpt")
+    assert used == [tmp_path / "ckpt" / "targets"]
+    assert not used[0].exists()
+    assert result.stats["targets"]  # the summary was taken before the files went
+
+
+@pytest.mark.slow
+def test_export_renders_at_most_export_max_views(recon, monkeypatch):
+    calls = []
+    real = Reconstruction.render
+    monkeypatch.setattr(Reconstruction, "render", lambda self, pose, *a, **k: calls.append(pose) or real(self, pose, *a, **k))
+    config = recon.config
+    try:
+        recon.config = config.replace(export_max_views=3)
+        recon.export_geometry(progress=False)
+    finally:
+        recon.config = config
+        recon.export_geometry(progress=False)
+    assert len(calls) == 3 + len(recon.train_indices)
+    train = recon.train_indices
+    np.testing.assert_allclose(np.stack(calls[:3]), recon.poses[train[[0, len(train) // 2, -1]]])

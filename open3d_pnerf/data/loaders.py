@@ -319,3 +319,33 @@ def write_tum_trajectory(path, poses: np.ndarray, timestamps: np.ndarray) -> Non
     ]
     text = "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n"
     atomic_write(path, lambda p: Path(p).write_text(text))
+
+
+def write_sequence(sequence: RGBDSequence, path, depth_scale: float = 1000.0, progress: bool = False) -> Path:
+    """Write a sequence as an Open3D/Redwood folder that :func:`load_sequence` reads back.
+
+    Layout: ``color/NNNNNN.png`` (colour on the depth grid), ``depth/NNNNNN.png`` (uint16,
+    metres * depth_scale), ``intrinsic.json`` (Open3D format plus depth_scale) and, when the
+    sequence has ground truth, ``groundtruth.log``. Frames are read one at a time.
+    """
+    import cv2
+    from tqdm.auto import tqdm
+
+    path = Path(path)
+    for sub in ("color", "depth"):
+        (path / sub).mkdir(parents=True, exist_ok=True)
+    for i in tqdm(range(len(sequence)), desc="write frames", disable=not progress, leave=False):
+        frame = sequence[i]
+        depth = np.round(frame.depth * depth_scale)
+        if depth.max(initial=0) > 65535:
+            raise InputError(f"frame {i}: depth {frame.depth.max():.1f} m overflows 16 bits at depth_scale {depth_scale}")
+        color = cv2.cvtColor(sequence.color_on_depth_grid(frame.color), cv2.COLOR_RGB2BGR)
+        atomic_write(path / "color" / f"{i:06d}.png", lambda p: cv2.imwrite(p, color))
+        atomic_write(path / "depth" / f"{i:06d}.png", lambda p: cv2.imwrite(p, depth.astype(np.uint16)))
+    intr = sequence.intrinsic
+    meta = {"width": intr.width, "height": intr.height, "depth_scale": depth_scale,
+            "intrinsic_matrix": np.asarray(intr.intrinsic_matrix).T.reshape(-1).tolist()}  # column-major
+    atomic_write(path / "intrinsic.json", lambda p: Path(p).write_text(json.dumps(meta, indent=1)))
+    if sequence.gt_poses is not None:
+        write_log_trajectory(path / "groundtruth.log", sequence.gt_poses)
+    return path

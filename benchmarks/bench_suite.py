@@ -1,0 +1,213 @@
+"""Issue-4 benchmark suite: the paper's experiments against Open3D TSDF fusion.
+
+Datasets (every 4th frame held out: 0, 4, 8, ...; training at 320x240):
+  synthetic   the room of open3d_pnerf.synthetic, 48 frames rendered at 640x480 with the
+              Kinect-like noise model; exact GT mesh (geometry metrics against the surface
+              seen by the sequence's cameras)
+  tum         TUM fr1/xyz, the 32 shared frames (../shared/data)
+  7scenes     7-Scenes redkitchen frames 150-199 (../shared/data)
+Experiments per dataset (ground-truth poses unless said; `--views` training views when
+sparse, default 10, evenly spaced over the non-held-out frames):
+  ablation    photometric / + density (Kd) / + density + depth (Kd, Kz) at sparse views
+  losses      pnerf vs dsnerf vs photometric at sparse views (shares the ablation runs)
+  views       pnerf and TSDF with 5, 10, 20 and all training frames
+  poses       pnerf at sparse views with poses from our tracking instead of GT
+Every run reports held-out PSNR/SSIM, depth L1, depth calibration, mesh accuracy/
+completeness/F-score (synthetic), wall time, peak RSS and training samples/s; the TSDF
+baseline is fused from the same training frames and poses. Each run is a fresh process
+(so peak RSS is per run).
+
+    python benchmarks/bench_suite.py [--budget 90] [--threads 1] [--datasets synthetic,tum,7scenes] [--quick]
+
+Writes benchmarks/results/suite.json, suite.md and suite_*.png (--quick: tiny synthetic
+runs, results/suite_quick.*, a smoke test of the script in ~3 minutes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import platform
+import resource
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+PATHS = {"tum": SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz",
+         "7scenes": SHARED / "7scenes_redkitchen" / "frames_150-199"}
+OUT = Path(__file__).resolve().parent / "results"
+HOLDOUT_EVERY = 4
+VARIANTS = {  # name -> config overrides
+    "photometric": dict(loss="photometric"),
+    "+density": dict(loss="pnerf", gains={"depth": 0.0}),
+    "pnerf": dict(loss="pnerf"),
+    "dsnerf": dict(loss="dsnerf"),
+}
+
+
+def load(dataset: str, quick: bool):
+    """(sequence, reference surface or None) for a dataset name."""
+    import open3d_pnerf as pn
+    from open3d_pnerf.synthetic import synthetic_sequence
+
+    if dataset == "synthetic":
+        data = synthetic_sequence(16 if quick else 48, 320 if quick else 640, 240 if quick else 480, seed=0)
+        return data.sequence, data.reference_points(stride=2)
+    return pn.load_sequence(PATHS[dataset]), None
+
+
+def poses_for(dataset: str, seq, kind: str, cache: Path):
+    """(poses, covariances): exact/GT ones, or tracked (cached per dataset) and expressed in
+    the GT world frame by the ATE alignment (so geometry metrics use the GT mesh's frame)."""
+    if kind == "gt":
+        return seq.gt_poses, np.zeros((len(seq), 6, 6))
+    file = cache / f"tracked_{dataset}.npz"
+    if not file.is_file():
+        import open3d_pnerf as pn
+
+        traj = pn.track(seq, progress=False)
+        ate = pn.absolute_trajectory_error(traj.poses, seq.gt_poses)
+        np.savez(file, poses=ate["alignment"] @ traj.poses, covariances=traj.covariances, ate=ate["rmse"])
+    z = np.load(file)
+    return z["poses"], z["covariances"]
+
+
+def run_one(spec: dict) -> dict:
+    """Train one configuration, compare with TSDF; runs in a fresh process."""
+    import torch
+
+    torch.set_num_threads(spec["threads"])
+    import open3d_pnerf as pn
+    from open3d_pnerf.comparison import compare_with_tsdf
+
+    seq, reference = load(spec["dataset"], spec["quick"])
+    poses, covs = poses_for(spec["dataset"], seq, spec["poses"], Path(spec["cache"]))
+    cfg = pn.ReconstructionConfig.preset(
+        "test" if spec["quick"] else "fast", time_budget_s=spec["budget"], max_steps=10**6,
+        holdout_every=HOLDOUT_EVERY, train_views=spec["views"], progress=False, **VARIANTS[spec["variant"]])
+    t0 = time.perf_counter()
+    recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
+    wall = time.perf_counter() - t0
+    comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
+    if spec.get("figure"):
+        for frame, fig in zip(comparison.frames, comparison.figures):
+            fig.savefig(spec["figure"], dpi=60)
+            break
+    tr = recon.stats["training"]
+    return {**{k: spec[k] for k in ("dataset", "variant", "views", "poses")},
+            "train_frames": len(recon.train_indices), "model": comparison.table["model"],
+            "tsdf": comparison.table["tsdf"], "wall_s": round(wall, 1), "steps": tr["steps"],
+            "samples_per_s": round(tr["samples_per_s"]), "peak_rss_mb": round(_peak_rss_mb())}
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
+
+
+def plan(datasets, views: int, quick: bool) -> list[dict]:
+    """The runs: (dataset, variant, training views (0 = all), poses)."""
+    sweep = (3, 0) if quick else (5, 10, 20, 0)
+    runs = []
+    for d in datasets:
+        runs += [dict(dataset=d, variant=v, views=views, poses="gt") for v in VARIANTS]
+        runs += [dict(dataset=d, variant="pnerf", views=n, poses="gt") for n in sweep if n != views]
+        runs.append(dict(dataset=d, variant="pnerf", views=views, poses="tracked"))
+    return runs
+
+
+def markdown(results: list[dict], meta: dict) -> str:
+    mm = lambda v: f"{1000 * v:.1f}" if v is not None else "-"  # noqa: E731
+    lines = [f"Budget {meta['budget_s']:.0f} s of training per run, {meta['threads']} thread(s); {meta['machine']}.",
+             "Held out: every 4th frame. Views: training frames (all = every non-held-out frame).", ""]
+    head = ("| dataset | run | views | poses | PSNR (dB) | SSIM | depth L1 (mm) | within 1σ | "
+            "acc. (mm) | compl. (mm) | F@20mm | F@50mm | TSDF PSNR (all / hits) | TSDF depth L1 (mm) | "
+            "TSDF compl. (mm) | TSDF F@20mm | steps | samples/s | peak RSS (MB) |")
+    lines += [head, "|" + " --- |" * (head.count("|") - 1)]
+    for r in results:
+        m, t = r["model"], r["tsdf"]
+        g = lambda d, k, f=".3f": format(d[k], f) if k in d else "-"  # noqa: E731
+        lines.append(
+            f"| {r['dataset']} | {r['variant']} | {r['views'] or 'all'} ({r['train_frames']}) | {r['poses']} | "
+            f"{m['psnr']:.2f} | {m['ssim']:.3f} | {mm(m['depth_l1'])} | {m['within_1']:.2f} | "
+            f"{mm(m.get('accuracy'))} | {mm(m.get('completeness'))} | {g(m, 'fscore_20mm')} | {g(m, 'fscore_50mm')} | "
+            f"{t['psnr']:.2f} / {t['psnr_hits']:.2f} | {mm(t['depth_l1'])} | {mm(t.get('completeness'))} | "
+            f"{g(t, 'fscore_20mm')} | {r['steps']} | {r['samples_per_s'] / 1000:.0f}k | {r['peak_rss_mb']} |")
+    return "\n".join(lines) + "\n"
+
+
+def sweep_figure(results: list[dict], path: Path) -> None:
+    """Held-out PSNR (and F-score where known) against the number of training views."""
+    from matplotlib.figure import Figure
+
+    datasets = sorted({r["dataset"] for r in results})
+    fig = Figure(figsize=(4 * len(datasets), 3.2), layout="constrained")
+    axes = fig.subplots(1, len(datasets), squeeze=False)[0]
+    for ax, d in zip(axes, datasets):
+        rows = sorted((r for r in results if r["dataset"] == d and r["variant"] == "pnerf" and r["poses"] == "gt"),
+                      key=lambda r: r["train_frames"])
+        n = [r["train_frames"] for r in rows]
+        ax.plot(n, [r["model"]["psnr"] for r in rows], "o-", label="pnerf PSNR")
+        ax.plot(n, [r["tsdf"]["psnr"] for r in rows], "s--", label="TSDF PSNR")
+        ax.set_xlabel("training views")
+        ax.set_ylabel("held-out PSNR (dB)")
+        ax.set_title(d)
+        if "fscore_20mm" in rows[0]["model"]:
+            f = ax.twinx()
+            f.plot(n, [r["model"]["fscore_20mm"] for r in rows], "o:", color="C2", label="pnerf F@20mm")
+            f.plot(n, [r["tsdf"]["fscore_20mm"] for r in rows], "s:", color="C3", label="TSDF F@20mm")
+            f.set_ylabel("F-score @ 20 mm")
+            f.legend(loc="lower right", fontsize=7)
+        ax.legend(loc="upper left", fontsize=7)
+    fig.savefig(path, dpi=70)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--budget", type=float, default=90.0, help="training seconds per run")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    ap.add_argument("--datasets", default="synthetic,tum,7scenes")
+    ap.add_argument("--views", type=int, default=10, help="training views of the sparse-view runs")
+    ap.add_argument("--quick", action="store_true", help="tiny synthetic runs: a smoke test of the script")
+    args = ap.parse_args()
+    datasets = ["synthetic"] if args.quick else args.datasets.split(",")
+    missing = [d for d in datasets if d != "synthetic" and not PATHS.get(d, SHARED / "?").is_dir()]
+    if missing:
+        raise SystemExit(f"shared data not found for {missing} (expected under {SHARED}); use --datasets synthetic")
+    budget = 10.0 if args.quick else args.budget
+    views = 5 if args.quick else args.views
+    stem = "suite_quick" if args.quick else "suite"
+    cache = OUT / "cache"
+    cache.mkdir(parents=True, exist_ok=True)
+    results = []
+    ctx = multiprocessing.get_context("spawn")
+    for spec in plan(datasets, views, args.quick):
+        spec.update(threads=args.threads, budget=budget, quick=args.quick, cache=str(cache))
+        if spec["variant"] == "pnerf" and spec["views"] == views and spec["poses"] == "gt":
+            spec["figure"] = str(OUT / f"{stem}_{spec['dataset']}_frame.png")
+        with ProcessPoolExecutor(1, mp_context=ctx) as pool:  # fresh process: per-run peak RSS
+            r = pool.submit(run_one, spec).result()
+        results.append(r)
+        print(f"{r['dataset']:9s} {r['variant']:11s} views {r['views'] or 'all':>3} {r['poses']:7s} "
+              f"PSNR {r['model']['psnr']:.2f} (TSDF {r['tsdf']['psnr']:.2f}) depth L1 "
+              f"{1000 * r['model']['depth_l1']:.1f} mm within1 {r['model']['within_1']:.2f} "
+              f"F@20 {r['model'].get('fscore_20mm', float('nan')):.3f} (TSDF {r['tsdf'].get('fscore_20mm', float('nan')):.3f}) "
+              f"{r['wall_s']:.0f} s {r['peak_rss_mb']} MB", flush=True)
+    tracked = {d: float(np.load(cache / f"tracked_{d}.npz")["ate"]) for d in datasets}
+    import torch
+
+    meta = {"machine": f"{platform.machine()} {platform.processor() or ''} {multiprocessing.cpu_count()} cores, "
+                       f"torch {torch.__version__}".replace("  ", " "),
+            "budget_s": budget, "threads": args.threads, "holdout_every": HOLDOUT_EVERY, "views": views,
+            "tracked_ate_rmse_mm": {d: round(1000 * a, 2) for d, a in tracked.items()}}
+    (OUT / f"{stem}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
+    (OUT / f"{stem}.md").write_text(markdown(results, meta))
+    sweep_figure(results, OUT / f"{stem}_views.png")
+    print((OUT / f"{stem}.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
