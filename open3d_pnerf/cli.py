@@ -1,4 +1,4 @@
-"""The `open3d-pnerf` command line: demo, reconstruct, track, tsdf, render.
+"""The `open3d-pnerf` command line: demo, reconstruct, track, tsdf, render, evaluate.
 
 Errors a user can fix are printed as one line (`open3d-pnerf: error: ...`) with exit code 2;
 Ctrl-C exits with 130 after training has written its checkpoint.
@@ -72,9 +72,43 @@ def _poses_for(seq, args, out: Path, reuse: bool = False):
     return traj.poses, traj.covariances
 
 
+RUN_OPTIONS = ("data", "frames", "gt_poses", "depth_trunc")  # what run_config.json records about the input
+
+
+def _write_run_config(out: Path, config, args) -> None:
+    """run_config.json: the config and the input options, for --resume and evaluate."""
+    data = args.data if args.data == "sample" else str(Path(args.data).resolve())
+    options = {key: getattr(args, key, None) for key in RUN_OPTIONS}
+    _write_json(out / "run_config.json", {"config": config.to_dict(), **options, "data": data})
+
+
+def _read_run_config(out: Path, what: str) -> dict:
+    """The run_config.json of a reconstruct/demo output folder (CheckpointError if absent)."""
+    from .errors import CheckpointError
+
+    path = out / "run_config.json"
+    if not path.is_file():
+        raise CheckpointError(f"{what} {out}: no run_config.json there (not a reconstruct output folder)")
+    return json.loads(path.read_text())
+
+
+def _write_json(path: Path, data: dict) -> None:
+    from ._files import atomic_write
+
+    atomic_write(path, lambda p: Path(p).write_text(json.dumps(data, indent=1, default=float)))
+
+
+def _training_tsdf(seq, recon, progress: bool):
+    """TSDFVolume fused from the reconstruction's training frames and poses, at its training scale."""
+    from .baselines import tsdf_fusion
+
+    train = seq.select(recon.train_indices)
+    return tsdf_fusion(train.rescaled(train.image_scale * recon.config.image_scale), recon.poses[recon.train_indices],
+                       return_volume=True, progress=progress)
+
+
 def run_reconstruction(seq, config, out: Path, args, resume: bool = False) -> dict:
     """Track (or reuse poses), train, export, compare with TSDF; write outputs + report.md."""
-    from .baselines import tsdf_fusion
     from .evaluation import heldout_scores
     from .export import write_mesh_ply
     from .reconstruction import reconstruct
@@ -92,15 +126,13 @@ def run_reconstruction(seq, config, out: Path, args, resume: bool = False) -> di
     recon.save(out)
     scores = {}
     if len(recon.holdout_indices):
-        train = seq.select(recon.train_indices)
-        volume = tsdf_fusion(train.rescaled(train.image_scale * config.image_scale), poses[recon.train_indices],
-                             return_volume=True, progress=config.progress)
+        volume = _training_tsdf(seq, recon, config.progress)
         tsdf_mesh = volume.mesh()
         if not tsdf_mesh.is_empty():
             write_mesh_ply(out / "tsdf_mesh.ply", tsdf_mesh)
         scores = heldout_scores(recon, seq, volume)
     report = {"sequence": repr(seq), "frames": len(seq), "ate_rmse_m": ate, "scores": scores, **recon.stats}
-    (out / "report.json").write_text(json.dumps(report, indent=1, default=float))
+    _write_json(out / "report.json", report)
     (out / "report.md").write_text(_report_md(report, recon, out))
     return report
 
@@ -119,15 +151,19 @@ def _report_md(report: dict, recon, out: Path) -> str:
         "",
     ]
     if report["scores"]:
-        lines += ["## Held-out frames", "", "| method | PSNR (dB) | PSNR on TSDF hits | SSIM | depth L1 (mm) |",
-                  "| --- | --- | --- | --- | --- |"]
-        for name, s in report["scores"].items():
-            hits = f"{s['psnr_hits']:.2f}" if "psnr_hits" in s else "-"
-            lines.append(f"| {name} | {s['psnr']:.2f} | {hits} | {s['ssim']:.3f} | {1000 * s['depth_l1']:.1f} |")
-        model = report["scores"]["model"]
-        lines += ["", f"Depth calibration (model): {model['within_1']:.2f} / {model['within_2']:.2f} / "
-                  f"{model['within_3']:.2f} of held-out errors within 1/2/3 predicted sigmas."]
+        lines += ["## Held-out frames", "", *_scores_table(report["scores"])]
     return "\n".join(lines) + "\n"
+
+
+def _scores_table(scores: dict) -> list[str]:
+    """Markdown lines: a table of heldout_scores() output and the model's depth calibration."""
+    lines = ["| method | PSNR (dB) | PSNR on TSDF hits | SSIM | depth L1 (mm) |", "| --- | --- | --- | --- | --- |"]
+    for name, s in scores.items():
+        hits = f"{s['psnr_hits']:.2f}" if "psnr_hits" in s else "-"
+        lines.append(f"| {name} | {s['psnr']:.2f} | {hits} | {s['ssim']:.3f} | {1000 * s['depth_l1']:.1f} |")
+    model = scores["model"]
+    return lines + ["", f"Depth calibration (model): {model['within_1']:.2f} / {model['within_2']:.2f} / "
+                    f"{model['within_3']:.2f} of held-out errors within 1/2/3 predicted sigmas."]
 
 
 # -- commands ---------------------------------------------------------------------------------
@@ -137,6 +173,7 @@ def cmd_demo(args) -> int:
     args.data, args.gt_poses = "sample", False
     seq = load_sample()
     config = _config(args)
+    _write_run_config(Path(args.out), config, args)
     report = run_reconstruction(seq, config, Path(args.out), args)
     print((Path(args.out) / "report.md").read_text())
     print(f"wrote {args.out}/mesh.ply, point_cloud.ply, tsdf_mesh.ply, report.md")
@@ -145,24 +182,18 @@ def cmd_demo(args) -> int:
 
 def cmd_reconstruct(args) -> int:
     out = Path(args.resume or args.out)
-    config_path = out / "run_config.json"
     if args.resume:
         from .config import ReconstructionConfig
-        from .errors import CheckpointError
 
-        if not config_path.is_file():
-            raise CheckpointError(f"--resume {out}: no run_config.json there (not a reconstruct output folder)")
-        saved = json.loads(config_path.read_text())
+        saved = _read_run_config(out, "--resume")
         config = ReconstructionConfig.from_dict(saved["config"])
-        for key in ("data", "frames", "gt_poses", "depth_trunc"):
+        for key in RUN_OPTIONS:
             setattr(args, key, saved[key])
         seq = _load(args)
     else:
         seq = _load(args)
         config = _config(args)
-        out.mkdir(parents=True, exist_ok=True)
-        config_path.write_text(json.dumps({"config": config.to_dict(), "data": str(args.data), "frames": args.frames,
-                                           "gt_poses": args.gt_poses, "depth_trunc": args.depth_trunc}, indent=1))
+        _write_run_config(out, config, args)
     run_reconstruction(seq, config, out, args, resume=bool(args.resume))
     if not args.quiet:
         print((out / "report.md").read_text())
@@ -231,6 +262,42 @@ def cmd_render(args) -> int:
     return EXIT_OK
 
 
+def cmd_evaluate(args) -> int:
+    from .errors import DatasetError, InputError
+    from .evaluation import heldout_scores
+    from .reconstruction import Reconstruction
+
+    folder = Path(args.dir)
+    recon = Reconstruction.load(folder)
+    if not len(recon.holdout_indices):
+        raise InputError(f"{folder}: the reconstruction has no held-out frames to score (reconstruct with --holdout-every)")
+    config_path = folder / "run_config.json"
+    saved = json.loads(config_path.read_text()) if config_path.is_file() else {}
+    recorded = args.data is None
+    if recorded:
+        if "data" not in saved:
+            raise InputError(f"{folder}: no run_config.json names its data (saved from Python?); pass --data DATA")
+        args.data = saved["data"]
+    args.frames, args.depth_trunc = saved.get("frames"), saved.get("depth_trunc") or 0.0
+    try:
+        seq = _load(args)
+    except DatasetError as exc:
+        if not recorded:
+            raise
+        raise DatasetError(f"{exc} (recorded in {config_path}; pass --data DATA if it moved)") from None
+    if len(seq) != len(recon.poses):
+        raise InputError(f"--data {args.data}: {len(seq)} frames, but {folder} reconstructed {len(recon.poses)}")
+    volume = _training_tsdf(seq, recon, progress=not args.quiet) if args.tsdf else None
+    scores = heldout_scores(recon, seq, volume)
+    out = Path(args.out) if args.out else folder / "evaluation.json"
+    _write_json(out, {"reconstruction": str(folder.resolve()), "sequence": repr(seq),
+                      "holdout_frames": recon.holdout_indices.tolist(), "scores": scores})
+    print(f"Held-out frames {recon.holdout_indices.tolist()} of {seq!r}:\n")
+    print("\n".join(_scores_table(scores)))
+    print(f"\nwrote {out}")
+    return EXIT_OK
+
+
 def _add_training_options(p):
     p.add_argument("--preset", default="fast", choices=["fast", "quality", "test"], help="configuration preset")
     p.add_argument("--loss", choices=["pnerf", "photometric", "dsnerf"], help="training loss (default pnerf)")
@@ -285,6 +352,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose", required=True, help="frame index, or a text file with a 4x4 camera-to-world matrix")
     p.add_argument("--out", required=True, help="output PNG (depth and sigma written beside it)")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("evaluate", help="score a saved reconstruction on its held-out frames (optionally against TSDF)",
+                       description="Render a saved reconstruction at its held-out frames and compare with their colour "
+                       "and sensor depth (PSNR, SSIM, depth L1, depth calibration); with --tsdf also an Open3D TSDF "
+                       "fused from the same training frames and poses. Prints a table and writes JSON.")
+    p.add_argument("dir", help="a reconstruct (or demo, or Reconstruction.save) output folder")
+    p.add_argument("--data", help="dataset folder or 'sample' (default: the one recorded in DIR/run_config.json)")
+    p.add_argument("--out", help="output JSON (default DIR/evaluation.json)")
+    p.add_argument("--tsdf", action=argparse.BooleanOptionalAction, default=True,
+                   help="also score the TSDF baseline (default: yes)")
+    p.set_defaults(func=cmd_evaluate)
     return parser
 
 

@@ -13,7 +13,7 @@ import pytest
 
 from open3d_pnerf import cli
 
-COMMANDS = ("demo", "reconstruct", "track", "tsdf", "render")
+COMMANDS = ("demo", "reconstruct", "track", "tsdf", "render", "evaluate")
 
 
 def test_help_lists_every_command():
@@ -57,12 +57,19 @@ def test_tsdf_writes_mesh(tmp_path):
     assert len(mesh.triangles) > 1000 and mesh.has_vertex_colors()
 
 
-@pytest.mark.slow
-def test_reconstruct_render_and_resume(tmp_path):
-    out = tmp_path / "run"
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    """One short `reconstruct` run on the sample (test preset, 40 steps, frames 0, 4, 8 held out)."""
+    out = tmp_path_factory.mktemp("cli") / "run"
     args = ["--quiet", "reconstruct", "sample", "--gt-poses", "--preset", "test", "--holdout-every", "4",
             "--max-steps", "40", "--out", str(out)]
     assert cli.main(args) == 0
+    return out
+
+
+@pytest.mark.slow
+def test_reconstruct_render_and_resume(run_dir, tmp_path):
+    out = run_dir
     for name in ("model.pt", "reconstruction.json", "trajectory_tum.txt", "trajectory.log", "report.md",
                  "report.json", "checkpoints/checkpoint.pt"):
         assert (out / name).is_file(), name
@@ -100,3 +107,48 @@ def test_console_script_installed():
     exe = shutil.which("open3d-pnerf") or str(Path(sys.executable).parent / "open3d-pnerf")
     out = subprocess.run([exe, "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "reconstruct" in out.stdout
+
+
+@pytest.mark.slow
+def test_evaluate_scores_the_held_out_frames_like_reconstruct(run_dir, tmp_path, capsys):
+    target = tmp_path / "eval.json"
+    assert cli.main(["--quiet", "evaluate", str(run_dir), "--out", str(target)]) == 0
+    report = json.loads(target.read_text())
+    assert report["holdout_frames"] == [0, 4, 8]
+    # the same renders and the same TSDF (training frames and poses) as reconstruct's report
+    assert report["scores"] == json.loads((run_dir / "report.json").read_text())["scores"]
+    out = capsys.readouterr().out
+    assert "| model |" in out and "| tsdf |" in out and str(target) in out
+
+
+@pytest.mark.slow
+def test_evaluate_a_folder_saved_from_python_needs_data(run_dir, tmp_path, capsys):
+    folder = tmp_path / "saved"
+    shutil.copytree(run_dir, folder, ignore=shutil.ignore_patterns("checkpoints", "run_config.json"))
+    assert cli.main(["--quiet", "evaluate", str(folder)]) == cli.EXIT_ERROR
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--data" in err[0]
+    assert cli.main(["--quiet", "evaluate", str(folder), "--data", "sample", "--no-tsdf"]) == 0
+    report = json.loads((folder / "evaluation.json").read_text())
+    assert set(report["scores"]) == {"model"} and report["scores"]["model"]["psnr"] > 5
+
+
+@pytest.mark.slow
+def test_evaluate_missing_data_is_one_clear_line(run_dir, tmp_path, capsys):
+    missing = tmp_path / "moved"
+    assert cli.main(["--quiet", "evaluate", str(run_dir), "--data", str(missing)]) == cli.EXIT_ERROR
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(missing) in err[0]
+    folder = tmp_path / "copy"
+    shutil.copytree(run_dir, folder, ignore=shutil.ignore_patterns("checkpoints"))
+    saved = json.loads((folder / "run_config.json").read_text())
+    (folder / "run_config.json").write_text(json.dumps({**saved, "data": str(missing)}))
+    assert cli.main(["--quiet", "evaluate", str(folder)]) == cli.EXIT_ERROR
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(missing) in err[0] and "run_config.json" in err[0] and "--data" in err[0]
+
+
+def test_evaluate_rejects_a_folder_that_is_not_a_reconstruction(tmp_path, capsys):
+    assert cli.main(["--quiet", "evaluate", str(tmp_path)]) == cli.EXIT_ERROR
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "reconstruction.json" in err[0]
