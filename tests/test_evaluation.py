@@ -1,0 +1,419 @@
+"""Tests of open3d_pnerf.evaluation (image, depth, calibration and geometry metrics, held-out
+scoring), open3d_pnerf.comparison (the model against TSDF fusion) and the sparse-view frame
+split (split_frames with train_views).
+
+Metrics are checked on tiny analytic cases with known values; the end-to-end comparison
+trains a short model on the synthetic room (marked slow).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from open3d_pnerf import ReconstructionConfig
+from open3d_pnerf.comparison import Comparison, compare_with_tsdf, comparison_figure
+from open3d_pnerf.errors import ConfigError, InputError
+from open3d_pnerf.evaluation import (
+    depth_calibration,
+    depth_errors,
+    geometry_metrics,
+    heldout_renders,
+    psnr,
+    score_renders,
+    ssim,
+)
+from open3d_pnerf.reconstruction import Reconstruction, split_frames
+from open3d_pnerf.synthetic import synthetic_sequence
+
+HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
+
+
+# -- image metrics -----------------------------------------------------------------------------------
+def test_psnr_of_a_constant_offset():
+    target = np.full((6, 8, 3), 0.5)
+    assert psnr(target + 0.1, target) == pytest.approx(20.0)  # mse 0.01
+    assert psnr(target - 0.01, target) == pytest.approx(40.0)
+    assert psnr(target, target) == float("inf")
+    pred = target.copy()
+    pred[:, :4] += 0.3  # error only in the left half
+    mask = np.zeros((6, 8), bool)
+    mask[:, 4:] = True
+    assert psnr(pred, target, mask) == float("inf")
+    assert psnr(pred, target, ~mask) == pytest.approx(-10 * math.log10(0.09))
+    assert psnr(pred, target) == pytest.approx(-10 * math.log10(0.045))
+
+
+def test_ssim_of_identical_constant_and_noisy_images():
+    rng = np.random.default_rng(0)
+    image = rng.random((32, 40, 3))
+    assert ssim(image, image) == pytest.approx(1.0, abs=1e-6)
+    # constant images: SSIM = (2 mu_x mu_y + C1) / (mu_x^2 + mu_y^2 + C1), C1 = 0.01^2
+    a, b = np.full((20, 24, 3), 0.5), np.full((20, 24, 3), 0.6)
+    assert ssim(a, b) == pytest.approx((2 * 0.3 + 1e-4) / (0.61 + 1e-4), abs=2e-4)
+    noisy = [ssim(np.clip(image + rng.normal(0, s, image.shape), 0, 1), image) for s in (0.02, 0.1, 0.3)]
+    assert 1 > noisy[0] > noisy[1] > noisy[2]
+
+
+# -- depth metrics -----------------------------------------------------------------------------------
+def test_depth_errors_on_known_offsets():
+    gt = np.array([[1.0, 2.0], [4.0, 0.0]])  # 0 = no sensor depth: ignored
+    pred = np.array([[1.1, 1.8], [4.4, 3.0]])
+    out = depth_errors(pred, gt)
+    assert out["pixels"] == 3
+    assert out["l1"] == pytest.approx((0.1 + 0.2 + 0.4) / 3)
+    assert out["rmse"] == pytest.approx(math.sqrt((0.01 + 0.04 + 0.16) / 3))
+    assert out["rel"] == pytest.approx((0.1 + 0.1 + 0.1) / 3)
+    # non-finite predictions are skipped without a mask; a mask selects pixels
+    pred_nan = pred.copy()
+    pred_nan[0, 1] = np.nan
+    assert depth_errors(pred_nan, gt)["pixels"] == 2 and depth_errors(pred_nan, gt)["l1"] == pytest.approx(0.25)
+    valid = np.array([[False, True], [True, True]])
+    out = depth_errors(pred, gt, valid)
+    assert out["pixels"] == 2 and out["l1"] == pytest.approx(0.3)
+    empty = depth_errors(pred, np.zeros_like(gt))
+    assert empty["pixels"] == 0 and all(math.isnan(empty[k]) for k in ("l1", "rmse", "rel"))
+
+
+def test_depth_calibration_counts_errors_within_k_sigma_and_the_nll():
+    gt = np.full(5, 2.0)
+    pred = gt + np.array([0.5, -1.5, 2.5, -3.5, 0.0])
+    std = np.ones(5)
+    out = depth_calibration(pred, std, gt)
+    assert (out["within_1"], out["within_2"], out["within_3"]) == (0.4, 0.6, 0.8)
+    errs = np.array([0.5, 1.5, 2.5, 3.5, 0.0])
+    assert out["nll"] == pytest.approx(np.mean(0.5 * errs**2) + HALF_LOG_2PI)
+    # sigma 0.1 with errors 0.05: nll = 0.125 + log(0.1) + log(2 pi) / 2; gt = 0 pixels ignored
+    out = depth_calibration(np.array([2.05, 1.95, 7.0]), np.full(3, 0.1), np.array([2.0, 2.0, 0.0]))
+    assert out["within_1"] == 1.0 and out["nll"] == pytest.approx(0.125 + math.log(0.1) + HALF_LOG_2PI)
+    # a calibrated Gaussian gives the textbook fractions
+    rng = np.random.default_rng(0)
+    sigma = rng.uniform(0.01, 0.1, 200_000)
+    gt = rng.uniform(1, 3, sigma.shape)
+    out = depth_calibration(gt + rng.standard_normal(sigma.shape) * sigma, sigma, gt)
+    for k, expected in ((1, 0.6827), (2, 0.9545), (3, 0.9973)):
+        assert out[f"within_{k}"] == pytest.approx(expected, abs=0.004)
+    assert out["nll"] == pytest.approx(np.mean(np.log(sigma)) + 0.5 + HALF_LOG_2PI, abs=0.01)
+    nan = depth_calibration(gt, sigma, np.zeros_like(gt))
+    assert all(math.isnan(v) for v in nan.values())
+
+
+# -- geometry metrics --------------------------------------------------------------------------------
+def unit_box(dz: float = 0.0) -> o3d.geometry.TriangleMesh:
+    box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0)
+    return box.translate((0.0, 0.0, dz))
+
+
+def open_box() -> o3d.geometry.TriangleMesh:
+    """The unit box without its top face z = 1 (5 of 6 faces)."""
+    box = unit_box()
+    z = np.asarray(box.vertices)[np.asarray(box.triangles)][..., 2]
+    box.remove_triangles_by_mask((z == 1.0).all(axis=1))
+    box.remove_unreferenced_vertices()
+    return box
+
+
+# Box vs the box shifted by 1 cm along z, per face of the shifted box (area 1 each):
+# top: 1 cm from the reference top; bottom (inside the reference): min(1 cm, distance to its
+# edges), mean 1 cm - 1.987e-4 m; sides: 0 except a 1 cm strip above z = 1 (mean 5 mm), which
+# adds 4 * 0.01 * 0.005 = 2e-4. Mean over 6 faces: 0.0200001 / 6 = 1/3 cm. Within 5 mm: the
+# sides below z = 1.005 (3.98) and the bottom's 5 mm border (0.0199): 3.9999 / 6 = 2/3.
+SHIFTED_MEAN = 0.01 / 3
+
+
+def test_geometry_metrics_of_a_box_shifted_by_one_centimetre():
+    out = geometry_metrics(unit_box(0.01), unit_box(), thresholds=(0.005, 0.02))
+    assert out["accuracy"] == pytest.approx(SHIFTED_MEAN, abs=2e-4)
+    assert out["completeness"] == pytest.approx(SHIFTED_MEAN, abs=2e-4)  # symmetric situation
+    assert out["chamfer"] == pytest.approx((out["accuracy"] + out["completeness"]) / 2)
+    for kind in ("precision", "recall", "fscore"):
+        assert out[f"{kind}_5mm"] == pytest.approx(2 / 3, abs=0.01)
+        assert out[f"{kind}_20mm"] == 1.0
+    assert set(out) == {"accuracy", "completeness", "chamfer"} | {
+        f"{k}_{t}" for k in ("precision", "recall", "fscore") for t in ("5mm", "20mm")}
+    same = geometry_metrics(unit_box(), unit_box())
+    assert same["accuracy"] < 1e-6 and same["completeness"] < 1e-6
+    assert same["fscore_20mm"] == same["fscore_50mm"] == 1.0
+
+
+def test_geometry_metrics_with_point_clouds():
+    o3d.utility.random.seed(1)
+    ref_points = unit_box().sample_points_uniformly(100_000)
+    # a point-cloud reference: completeness (reference -> mesh) is exact
+    out = geometry_metrics(unit_box(0.01), ref_points)
+    assert out["completeness"] == pytest.approx(SHIFTED_MEAN, abs=2e-4)
+    # accuracy is a nearest-point distance: at least the surface distance, plus the spacing
+    # of the samples (mean nearest-neighbour distance ~ 0.5 / sqrt(density) = 4 mm)
+    assert SHIFTED_MEAN - 2e-4 < out["accuracy"] < SHIFTED_MEAN + 0.006
+    # a point-cloud prediction against a mesh: accuracy (points -> mesh) is exact
+    pred_points = unit_box(0.01).sample_points_uniformly(100_000)
+    out = geometry_metrics(pred_points, unit_box())
+    assert out["accuracy"] == pytest.approx(SHIFTED_MEAN, abs=2e-4)
+
+
+def test_geometry_metrics_of_a_partial_reconstruction():
+    # Every point of the open box lies on the full box: accuracy 0, precision 1. A top-face
+    # point (x, y, 1) is min(x, 1-x, y, 1-y) from the open box: mean 1/6 over the face, so
+    # completeness = (1/6) / 6 = 1/36; within t: the face's border 1 - (1 - 2t)^2.
+    out = geometry_metrics(open_box(), unit_box())
+    assert out["accuracy"] < 1e-6
+    assert out["precision_20mm"] == out["precision_50mm"] == 1.0
+    assert out["completeness"] == pytest.approx(1 / 36, abs=5e-4)
+    for t in (0.02, 0.05):
+        recall = (5 + 1 - (1 - 2 * t) ** 2) / 6
+        key = f"{t * 1000:g}mm"
+        assert out[f"recall_{key}"] == pytest.approx(recall, abs=0.005)
+        assert out[f"fscore_{key}"] == pytest.approx(2 * recall / (1 + recall), abs=0.005)
+    # swapped roles: the full box is less accurate than the open box is complete
+    swapped = geometry_metrics(unit_box(), open_box())
+    assert swapped["accuracy"] == pytest.approx(out["completeness"], abs=5e-4) and swapped["completeness"] < 1e-6
+
+
+def test_geometry_metrics_rejects_empty_and_foreign_geometry():
+    with pytest.raises(InputError, match="pred: the mesh has no triangles"):
+        geometry_metrics(o3d.geometry.TriangleMesh(), unit_box())
+    with pytest.raises(InputError, match="reference: the point cloud is empty"):
+        geometry_metrics(unit_box(), o3d.geometry.PointCloud())
+    with pytest.raises(InputError, match="reference must be an open3d.geometry.TriangleMesh or PointCloud"):
+        geometry_metrics(unit_box(), np.zeros((10, 3)))
+    with pytest.raises(InputError, match="pred must be"):
+        geometry_metrics(o3d.t.geometry.TriangleMesh.from_legacy(unit_box()), unit_box())
+
+
+# -- scoring held-out renders ------------------------------------------------------------------------
+def render_item(index, model_color_err, model_depth_err, tsdf=True, h=6, w=8):
+    """A heldout_renders item with known errors: gt colour 0.5, depth 2 m (a missing row)."""
+    color = np.full((h, w, 3), 0.5)
+    depth = np.full((h, w), 2.0, np.float32)
+    depth[0] = 0  # no sensor depth: not scored
+    model = {"color": color + model_color_err, "depth": depth + model_depth_err,
+             "depth_std": np.full((h, w), 0.02, np.float32)}
+    item = {"index": index, "color": color, "depth": depth, "model": model, "tsdf": None}
+    if tsdf:
+        hit = np.zeros((h, w), bool)
+        hit[:, : w // 2] = True
+        tsdf_color = np.where(hit[..., None], color + 0.1, color + 0.3)
+        item["tsdf"] = {"color": tsdf_color, "depth": np.where(hit, depth - 0.03, 0).astype(np.float32), "hit": hit}
+    return item
+
+
+def test_score_renders_averages_known_errors_over_frames():
+    items = [render_item(0, 0.1, 0.01), render_item(4, 0.2, 0.03)]
+    scores = score_renders(items)
+    assert set(scores) == {"model", "tsdf"}
+    model, tsdf = scores["model"], scores["tsdf"]
+    assert model["psnr"] == pytest.approx((20 - 10 * math.log10(0.04)) / 2, abs=1e-4)
+    assert model["depth_l1"] == pytest.approx(0.02, abs=1e-5)
+    assert model["depth_rmse"] == pytest.approx(0.02, abs=1e-5)
+    assert model["depth_rel"] == pytest.approx(0.01, abs=1e-5)
+    assert model["depth_pixels"] == 40  # 5 rows x 8
+    # errors 0.01 and 0.03 against sigma 0.02: within 1 sigma in the first frame only
+    assert (model["within_1"], model["within_2"], model["within_3"]) == (0.5, 1.0, 1.0)
+    nll = lambda e: 0.5 * (e / 0.02) ** 2 + math.log(0.02) + HALF_LOG_2PI  # noqa: E731
+    assert model["nll"] == pytest.approx((nll(0.01) + nll(0.03)) / 2, abs=1e-4)
+    assert model["ssim"] == pytest.approx(np.mean([ssim(i["model"]["color"], i["color"]) for i in items]), abs=1e-5)
+    # TSDF: colour error 0.1 on its hits (left half), 0.3 elsewhere; depth 3 cm short on hits
+    assert tsdf["psnr_hits"] == pytest.approx(20.0, abs=1e-4)
+    assert tsdf["psnr"] == pytest.approx(-10 * math.log10((0.01 + 0.09) / 2), abs=1e-4)
+    assert tsdf["hit_fraction"] == 0.5
+    assert tsdf["depth_l1"] == pytest.approx(0.03, abs=1e-5) and tsdf["depth_pixels"] == 20
+    # without TSDF renders only the model is scored
+    assert set(score_renders([render_item(0, 0.1, 0.01, tsdf=False)])) == {"model"}
+
+
+# -- comparison table and figure ---------------------------------------------------------------------
+def test_comparison_markdown_lists_each_metric_once_in_display_units():
+    table = {
+        "model": {"psnr": 25.123, "depth_l1": 0.0123, "within_1": 0.7, "fscore_20mm": 0.5, "fscore_5mm": 0.25},
+        "tsdf": {"psnr": 20.0, "psnr_hits": 28.0, "depth_l1": 0.02, "fscore_20mm": 0.4},
+    }
+    text = Comparison(table, None, None, [], []).markdown()
+    assert text == (
+        "| metric | model | tsdf |\n"
+        "| --- | --- | --- |\n"
+        "| PSNR (dB) | 25.12 | 20.00 |\n"
+        "| PSNR on TSDF hits (dB) | - | 28.00 |\n"
+        "| depth L1 (mm) | 12.3 | 20.0 |\n"
+        "| errors within 1 sigma | 0.70 | - |\n"
+        "| F-score @ 20mm | 0.500 | 0.400 |\n"
+        "| F-score @ 5mm | 0.250 | - |\n"
+    )
+
+
+def panels(fig) -> dict:
+    """{(row, col): Axes} of a comparison figure's image grid (colour bars excluded)."""
+    out = {}
+    for ax in fig.axes:
+        spec = ax.get_subplotspec()
+        if spec is not None:
+            out[spec.rowspan.start, spec.colspan.start] = ax
+    return out
+
+
+def test_comparison_figure_shows_inputs_renders_and_errors():
+    item = render_item(7, 0.1, 0.01)
+    item["model"]["depth"][1, 1] = 2.5
+    fig = comparison_figure(item)
+    grid = panels(fig)
+    assert sorted(grid) == [(r, c) for r in range(3) for c in range(4)]
+    assert [grid[r, 0].get_ylabel() for r in range(3)] == ["input", "model", "TSDF"]
+    assert [grid[0, c].get_title() for c in range(4)] == ["colour", "depth (m)", "|depth error| (m)", "depth sigma (m)"]
+    assert fig.get_suptitle() == "held-out frame 7"
+    # input and TSDF have no depth sigma, the input no error map
+    assert not grid[0, 2].images and not grid[0, 3].images and not grid[2, 3].images
+    assert all(len(grid[r, c].images) == 1 for r, c in grid if (r, c) not in {(0, 2), (0, 3), (2, 3)})
+    gt = item["depth"]
+    model_err = np.asarray(grid[1, 2].images[0].get_array().filled(np.nan))
+    expected = np.where(gt > 0, np.abs(item["model"]["depth"] - gt), np.nan)
+    np.testing.assert_allclose(model_err, expected, atol=1e-6)
+    assert model_err[1, 1] == pytest.approx(0.5)
+    tsdf_err = np.asarray(grid[2, 2].images[0].get_array().filled(np.nan))
+    hit = item["tsdf"]["hit"] & (gt > 0)
+    assert np.isnan(tsdf_err[~hit]).all()
+    np.testing.assert_allclose(tsdf_err[hit], 0.03, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(grid[1, 3].images[0].get_array()), 0.02)
+    # without a TSDF render: two rows
+    item["tsdf"] = None
+    assert sorted(panels(comparison_figure(item))) == [(r, c) for r in range(2) for c in range(4)]
+
+
+# -- sparse-view split -------------------------------------------------------------------------------
+def test_split_frames_keeps_train_views_evenly_spaced_frames():
+    train_all, hold = split_frames(13, 4)
+    np.testing.assert_array_equal(hold, [0, 4, 8, 12])
+    np.testing.assert_array_equal(train_all, [1, 2, 3, 5, 6, 7, 9, 10, 11])
+    train, hold5 = split_frames(13, 4, train_views=5)
+    np.testing.assert_array_equal(hold5, hold)  # held-out set unchanged
+    np.testing.assert_array_equal(train, [1, 3, 6, 9, 11])  # positions 0, 2, 4, 6, 8 of the 9 others
+    # 5 of 15 others: first and last kept, steps of 3.5 positions rounded to 3 or 4
+    train, hold = split_frames(20, 4, train_views=5)
+    others = split_frames(20, 4)[0]
+    positions = np.searchsorted(others, train)
+    assert len(train) == 5 and np.isin(train, others).all() and not np.isin(train, hold).any()
+    assert train[0] == others[0] == 1 and train[-1] == others[-1] == 19
+    assert set(np.diff(positions)) <= {3, 4}
+    np.testing.assert_array_equal(split_frames(13, 4, train_views=9)[0], train_all)  # all of them
+    np.testing.assert_array_equal(split_frames(10, 0, train_views=4)[0], [0, 3, 6, 9])  # no hold-out
+    np.testing.assert_array_equal(split_frames(10, 0, train_views=2)[0], [0, 9])
+    with pytest.raises(InputError, match="train_views=10 but only 9"):
+        split_frames(13, 4, train_views=10)
+
+
+@pytest.mark.parametrize("value", [1, -1, 2.5, True])
+def test_config_rejects_bad_train_views(value):
+    with pytest.raises(ConfigError, match="train_views"):
+        ReconstructionConfig.preset("test", train_views=value)
+
+
+def test_config_accepts_train_views():
+    assert ReconstructionConfig.preset("test", train_views=2).train_views == 2
+    assert ReconstructionConfig().train_views == 0
+
+
+# -- compare_with_tsdf -------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def small_room():
+    return synthetic_sequence(12, 160, 120)
+
+
+def stub_reconstruction(n: int, holdout=()) -> Reconstruction:
+    """A Reconstruction shell (no field) for argument checks that fail before any render."""
+    intrinsic = o3d.camera.PinholeCameraIntrinsic(80, 60, 65.6, 65.6, 39.5, 29.5)
+    train = [i for i in range(n) if i not in holdout]
+    return Reconstruction(None, ReconstructionConfig.preset("test", progress=False), np.tile(np.eye(4), (n, 1, 1)),
+                          np.zeros((n, 6, 6)), intrinsic, [[-3, -3, -1], [3, 3, 3]], train, list(holdout))
+
+
+def test_compare_with_tsdf_rejects_bad_inputs(small_room):
+    seq = small_room.sequence
+    with pytest.raises(InputError, match="sequence must be an RGBDSequence"):
+        compare_with_tsdf([np.zeros((4, 4))], reconstruction=stub_reconstruction(12))
+    with pytest.raises(InputError, match="no held-out frames"):
+        compare_with_tsdf(seq, reconstruction=stub_reconstruction(12), progress=False)
+    with pytest.raises(InputError, match="has 10 frames but the sequence has 12"):
+        compare_with_tsdf(seq, reconstruction=stub_reconstruction(10, holdout=(0, 4, 8)), progress=False)
+    with pytest.raises(InputError, match="reconstruction must be a Reconstruction"):
+        compare_with_tsdf(seq, reconstruction="model.pt", progress=False)
+
+
+@pytest.fixture(scope="module")
+def comparison(small_room):
+    # 60 steps leave depth spreads ~1 m: lower the export thresholds so that the model has a
+    # mesh to score. 9 training views around the room see most surfaces 1-3 times: keep TSDF
+    # voxels seen once (weight_threshold=0.5).
+    config = ReconstructionConfig.preset("test", holdout_every=4, progress=False, max_steps=60,
+                                         min_opacity=0.5, max_point_std=1.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = compare_with_tsdf(small_room.sequence, config, poses=small_room.sequence.gt_poses,
+                                   reference=small_room.reference_points(), weight_threshold=0.5, progress=False)
+    assert not [w for w in caught if "no mesh" in str(w.message)]  # both have geometry to score
+    return result
+
+
+METRICS = ("psnr", "depth_l1", "accuracy", "completeness", "fscore_20mm")
+
+
+@pytest.mark.slow
+def test_compare_with_tsdf_on_the_synthetic_room(comparison, small_room):
+    c = comparison
+    recon = c.reconstruction
+    np.testing.assert_array_equal(recon.holdout_indices, [0, 4, 8])
+    np.testing.assert_array_equal(recon.train_indices, [1, 2, 3, 5, 6, 7, 9, 10, 11])
+    np.testing.assert_array_equal(recon.poses, small_room.sequence.gt_poses)
+    assert set(c.table) == {"model", "tsdf"}
+    for name in ("model", "tsdf"):
+        row = c.table[name]
+        assert set(METRICS) <= set(row), name
+        assert all(math.isfinite(v) for v in row.values()), row
+    model, tsdf = c.table["model"], c.table["tsdf"]
+    assert model["within_1"] <= model["within_2"] <= model["within_3"]
+    assert 0.5 < tsdf["hit_fraction"] <= 1
+    # exact poses and Kinect-like noise: the TSDF's depth where it hits is ~2 cm off the
+    # (noisy) held-out depth, most of it the held-out frame's own noise
+    assert tsdf["depth_l1"] < 0.03
+    assert tsdf["psnr_hits"] > tsdf["psnr"]  # misses render black
+    # figures: evenly spread held-out frames (first and last), 3 rows x 4 columns each
+    assert c.frames == [0, 8] and len(c.figures) == 2
+    for fig in c.figures:
+        assert sorted(panels(fig)) == [(r, col) for r in range(3) for col in range(4)]
+    # the table's held-out scores are those of heldout_renders + score_renders
+    items = list(heldout_renders(recon, small_room.sequence, c.tsdf))
+    assert [i["index"] for i in items] == [0, 4, 8]
+    assert items[0]["color"].shape == (60, 80, 3) and items[0]["depth"].shape == (60, 80)
+    assert set(items[0]["model"]) >= {"color", "depth", "depth_std"} and items[0]["tsdf"]["hit"].shape == (60, 80)
+    rescored = score_renders(items)
+    for name in ("model", "tsdf"):
+        for key, value in rescored[name].items():
+            assert c.table[name][key] == pytest.approx(value, abs=1e-5), (name, key)
+    assert all(i["tsdf"] is None for i in heldout_renders(recon, small_room.sequence))
+
+
+@pytest.mark.slow
+def test_comparison_save_and_markdown(comparison, tmp_path):
+    c = comparison
+    text = c.markdown()
+    lines = text.splitlines()
+    assert lines[0] == "| metric | model | tsdf |"
+    labels = [line.split(" | ")[0][2:] for line in lines[2:]]
+    for label in ("PSNR (dB)", "depth L1 (mm)", "accuracy (mm)", "completeness (mm)", "F-score @ 20mm",
+                  "F-score @ 50mm"):
+        assert labels.count(label) == 1, label
+    assert all(line.count("|") == 4 for line in lines)
+    row = lines[2 + labels.index("depth L1 (mm)")]
+    assert row == (f"| depth L1 (mm) | {c.table['model']['depth_l1'] * 1000:.1f} | "
+                   f"{c.table['tsdf']['depth_l1'] * 1000:.1f} |")
+    out = c.save(tmp_path / "cmp")
+    assert json.loads((out / "comparison.json").read_text()) == c.table
+    assert (out / "comparison.md").read_text() == text
+    for frame in c.frames:
+        assert (out / f"compare_frame_{frame:04d}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    mesh = o3d.io.read_triangle_mesh(str(out / "tsdf_mesh.ply"))
+    assert len(mesh.triangles) > 1000 and mesh.has_vertex_colors()
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["comparison.json", "comparison.md", "tsdf_mesh.ply"] + [f"compare_frame_{f:04d}.png" for f in c.frames])
