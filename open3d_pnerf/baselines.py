@@ -72,10 +72,15 @@ class TSDFVolume:
             if "No block is touched" in str(exc):
                 return
             raise
-        intr_c = intr if K_color is None else self._tensor(K_color)
+        # Open3D reads a voxel's depth from pixel floor(u) (pixel i spans [i, i + 1)); with pixel
+        # centres at integers the nearest pixel is floor(u + 0.5): shift the principal point by half
+        # a pixel (else oblique surfaces move by half a pixel's depth change, ~1 cm at 160x120)
+        half = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+        intr_d = self._tensor(np.asarray(K, np.float64) + half)
+        intr_c = self._tensor(np.asarray(K if K_color is None else K_color, np.float64) + half)
         self._scene = None  # the cached ray-casting mesh is stale now
         self.grid.integrate(
-            coords, depth_img, color_img, intr, intr_c, extr, 1.0, self.depth_max, self.trunc_multiplier
+            coords, depth_img, color_img, intr_d, intr_c, extr, 1.0, self.depth_max, self.trunc_multiplier
         )
 
     def mesh(self) -> o3d.geometry.TriangleMesh:

@@ -71,7 +71,7 @@ class Comparison:
 
 def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | None = None, poses=None,
                       covariances=None, reconstruction: Reconstruction | None = None, reference=None,
-                      figure_frames: int = 2, voxel_size: float = 0.01, weight_threshold: float = 3.0,
+                      figure_frames: int = 2, voxel_size: float = 0.01, weight_threshold: float | None = None,
                       progress: bool = True) -> Comparison:
     """Train (or take) a model and fuse the TSDF baseline on the same frames; compare them.
 
@@ -81,9 +81,9 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
     reconstruct(). reference: a ground-truth ``o3d.geometry.TriangleMesh`` or
     ``PointCloud`` (world frame of the poses) for geometry metrics. voxel_size: TSDF voxel
     (m), truncation 4 voxels. weight_threshold: the TSDF keeps voxels seen by more training
-    frames than this (3.0, Open3D's default, suits dense video; with a few sparse views most
-    surfaces are seen by fewer frames and vanish: use 0.5). Both are rendered at the
-    held-out poses at the training resolution.
+    frames than this; None = min(3, training frames / 5) (3 is Open3D's default for dense
+    video; with a few sparse views most surfaces are seen by fewer frames and would vanish).
+    Both are rendered at the held-out poses at the training resolution.
     """
     if not isinstance(sequence, RGBDSequence):
         raise InputError(f"sequence must be an RGBDSequence, got {type(sequence).__name__}")
@@ -100,6 +100,8 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
                          "(set config.holdout_every > 0) and no reference surface was given")
     train = sequence.select(recon.train_indices)
     train = train.rescaled(train.image_scale * recon.config.image_scale)
+    if weight_threshold is None:
+        weight_threshold = min(3.0, len(recon.train_indices) / 5)
     depth_max = float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))  # nothing in the box is farther
     tsdf = tsdf_fusion(train, recon.poses[recon.train_indices], voxel_size=voxel_size, sdf_trunc=4 * voxel_size,
                        depth_max=depth_max, return_volume=True, progress=progress, weight_threshold=weight_threshold)
