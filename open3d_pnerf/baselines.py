@@ -8,6 +8,7 @@ from tqdm.auto import tqdm
 
 from .data.sequence import RGBDSequence, check_poses, check_sequence
 from .errors import InputError
+from .raycast import MeshRaycaster
 
 
 class TSDFVolume:
@@ -48,7 +49,7 @@ class TSDFVolume:
             block_count=block_count,
             device=self.device,
         )
-        self._scene = None
+        self._raycaster = None
 
     def _tensor(self, array, dtype=o3d.core.float64):
         return o3d.core.Tensor(np.ascontiguousarray(array), dtype, self.device)
@@ -78,7 +79,7 @@ class TSDFVolume:
         half = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
         intr_d = self._tensor(np.asarray(K, np.float64) + half)
         intr_c = self._tensor(np.asarray(K if K_color is None else K_color, np.float64) + half)
-        self._scene = None  # the cached ray-casting mesh is stale now
+        self._raycaster = None  # the cached ray-casting mesh is stale now
         self.grid.integrate(
             coords, depth_img, color_img, intr_d, intr_c, extr, 1.0, self.depth_max, self.trunc_multiplier
         )
@@ -100,34 +101,14 @@ class TSDFVolume:
     def render(self, pose: np.ndarray, K: np.ndarray, width: int, height: int) -> dict:
         """Ray-cast the fused surface from a camera-to-world pose (pixel centres at integers).
 
-        Casts against the extracted mesh with Open3D's RaycastingScene (the VoxelBlockGrid's
-        own ray_cast hangs on its second call in open3d 0.19 on CPU) and interpolates vertex
-        colours. Returns color (H, W, 3) float32 in [0, 1], depth (H, W) float32 z metres
+        Casts against the extracted mesh (:class:`~open3d_pnerf.raycast.MeshRaycaster`; the
+        VoxelBlockGrid's own ray_cast hangs on its second call in open3d 0.19 on CPU) and
+        interpolates vertex colours. Returns color (H, W, 3) float32 in [0, 1], depth (H, W) float32 z metres
         (0 = miss) and hit (H, W) bool.
         """
-        if self._scene is None:
-            mesh = self.mesh()
-            self._mesh_colors = np.asarray(mesh.vertex_colors, np.float32)
-            self._mesh_triangles = np.asarray(mesh.triangles)
-            self._scene = o3d.t.geometry.RaycastingScene()
-            if not mesh.is_empty():
-                self._scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-        u, v = np.meshgrid(np.arange(width), np.arange(height))
-        d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((height, width))], -1)
-        d_world = d_cam @ np.asarray(pose)[:3, :3].T
-        origins = np.broadcast_to(np.asarray(pose)[:3, 3], d_world.shape)
-        rays = o3d.core.Tensor(np.concatenate([origins, d_world], -1).astype(np.float32))
-        hit_info = self._scene.cast_rays(rays)
-        t = hit_info["t_hit"].numpy()
-        hit = np.isfinite(t) & (t <= self.depth_max)
-        depth = np.where(hit, t, 0).astype(np.float32)  # d has unit camera-z, so t is z-depth
-        color = np.zeros((height, width, 3), np.float32)
-        if hit.any():
-            tri = self._mesh_triangles[hit_info["primitive_ids"].numpy()[hit]]
-            uv = hit_info["primitive_uvs"].numpy()[hit]
-            bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], 1)
-            color[hit] = (self._mesh_colors[tri] * bary[..., None]).sum(1)
-        return {"color": np.clip(color, 0, 1), "depth": depth, "hit": hit}
+        if self._raycaster is None:
+            self._raycaster = MeshRaycaster(self.mesh())
+        return self._raycaster.render(pose, K, width, height, self.depth_max)
 
 
 def tsdf_fusion(

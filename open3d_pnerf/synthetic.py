@@ -19,6 +19,8 @@ import open3d as o3d
 
 from .data.sequence import RGBDSequence, check_intrinsic, check_poses
 from .errors import InputError
+from .export import backproject
+from .raycast import pinhole_rays
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,14 +108,10 @@ class SyntheticScene:
         no surface), cos_incidence (H, W) |cos| between ray and surface normal.
         """
         intrinsic = check_intrinsic(intrinsic)
-        K = np.array(intrinsic.intrinsic_matrix, float)
-        K[:2, 2] += 0.5  # Open3D casts through (u + 0.5, v + 0.5); the library's pixel centres are integers
-        rays = self._scene.create_rays_pinhole(
-            o3d.core.Tensor(K), o3d.core.Tensor(np.linalg.inv(pose)), intrinsic.width, intrinsic.height
-        )
+        rays = pinhole_rays(pose, np.asarray(intrinsic.intrinsic_matrix), intrinsic.width, intrinsic.height)
         hits = self._scene.cast_rays(rays)
         rays = rays.numpy()
-        depth = hits["t_hit"].numpy()  # directions are K^-1 [u, v, 1] in world axes: t = z-depth
+        depth = hits["t_hit"].numpy()  # directions have unit camera-z: t = z-depth
         hit = np.isfinite(depth)
         depth = np.where(hit, depth, 0.0).astype(np.float32)
         points = rays[..., :3] + rays[..., 3:] * depth[..., None]
@@ -134,12 +132,10 @@ class SyntheticScene:
         one per `voxel_size` voxel (a hit point, not a voxel average, so every point lies on
         the surface). The reference for completeness (unseen surfaces do not count)."""
         K = np.asarray(intrinsic.intrinsic_matrix)
-        v, u = np.mgrid[0:intrinsic.height, 0:intrinsic.width]
-        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1)
         kept, keys = np.zeros((0, 3)), np.zeros(0, np.int64)
         for pose in check_poses(poses):
             depth = self.render(pose, intrinsic)["depth"]
-            pts = (rays * depth[..., None])[depth > 0] @ pose[:3, :3].T + pose[:3, 3]
+            pts = backproject(depth, K, pose, depth > 0)
             cell = np.floor(pts / voxel_size).astype(np.int64) + (1 << 20)  # voxel index >= 0 (to 10 km at 1 cm)
             new_keys = (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
             keys, first = np.unique(np.concatenate([keys, new_keys]), return_index=True)  # first hit per voxel

@@ -20,6 +20,7 @@ NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.i
 EXPECTED_OUTPUTS = {
     "01_quickstart": ["mesh.ply", "point_cloud.ply", "model.pt", "overview.png"],
     "02_uncertainty": ["point_cloud_sigma.ply", "depth_pdfs.png", "calibration.png"],
+    "03_compare_tsdf": ["comparison.json", "comparison.md", "tsdf_mesh.ply"],
 }
 
 
