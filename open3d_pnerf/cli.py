@@ -98,19 +98,9 @@ def _write_json(path: Path, data: dict) -> None:
     atomic_write(path, lambda p: Path(p).write_text(json.dumps(data, indent=1, default=float)))
 
 
-def _training_tsdf(seq, recon, progress: bool):
-    """TSDFVolume fused from the reconstruction's training frames and poses, at its training scale."""
-    from .baselines import tsdf_fusion
-
-    train = seq.select(recon.train_indices)
-    return tsdf_fusion(train.rescaled(train.image_scale * recon.config.image_scale), recon.poses[recon.train_indices],
-                       return_volume=True, progress=progress)
-
-
 def run_reconstruction(seq, config, out: Path, args, resume: bool = False) -> dict:
     """Track (or reuse poses), train, export, compare with TSDF; write outputs + report.md."""
-    from .evaluation import heldout_scores
-    from .export import write_mesh_ply
+    from .comparison import compare_with_tsdf
     from .reconstruction import reconstruct
     from .tracking import absolute_trajectory_error
 
@@ -124,14 +114,13 @@ def run_reconstruction(seq, config, out: Path, args, resume: bool = False) -> di
     recon = reconstruct(seq, config, poses=poses, covariances=covs, checkpoint_dir=out / "checkpoints", resume=resume)
     recon.stats["timings"]["tracking_s"] = round(tracking_s, 2)
     recon.save(out)
-    scores = {}
-    if len(recon.holdout_indices):
-        volume = _training_tsdf(seq, recon, config.progress)
-        tsdf_mesh = volume.mesh()
-        if not tsdf_mesh.is_empty():
-            write_mesh_ply(out / "tsdf_mesh.ply", tsdf_mesh)
-        scores = heldout_scores(recon, seq, volume)
-    report = {"sequence": repr(seq), "frames": len(seq), "ate_rmse_m": ate, "scores": scores, **recon.stats}
+    scores, figures = {}, []
+    if len(recon.holdout_indices):  # TSDF of the same training frames and poses; writes tsdf_mesh.ply, figures
+        comparison = compare_with_tsdf(seq, reconstruction=recon, progress=config.progress)
+        comparison.save(out)
+        scores, figures = comparison.table, [f"compare_frame_{i:04d}.png" for i in comparison.frames]
+    report = {"sequence": repr(seq), "frames": len(seq), "ate_rmse_m": ate, "scores": scores, "figures": figures,
+              **recon.stats}
     _write_json(out / "report.json", report)
     (out / "report.md").write_text(_report_md(report, recon, out))
     return report
@@ -151,7 +140,8 @@ def _report_md(report: dict, recon, out: Path) -> str:
         "",
     ]
     if report["scores"]:
-        lines += ["## Held-out frames", "", *_scores_table(report["scores"])]
+        lines += ["## Held-out frames", "", *_scores_table(report["scores"]), ""]
+        lines += [f"![held-out frame: input, model, TSDF]({name})" for name in report["figures"]]
     return "\n".join(lines) + "\n"
 
 
@@ -263,6 +253,7 @@ def cmd_render(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
+    from .comparison import compare_with_tsdf
     from .errors import DatasetError, InputError
     from .evaluation import heldout_scores
     from .reconstruction import Reconstruction
@@ -287,8 +278,10 @@ def cmd_evaluate(args) -> int:
         raise DatasetError(f"{exc} (recorded in {config_path}; pass --data DATA if it moved)") from None
     if len(seq) != len(recon.poses):
         raise InputError(f"--data {args.data}: {len(seq)} frames, but {folder} reconstructed {len(recon.poses)}")
-    volume = _training_tsdf(seq, recon, progress=not args.quiet) if args.tsdf else None
-    scores = heldout_scores(recon, seq, volume)
+    if args.tsdf:
+        scores = compare_with_tsdf(seq, reconstruction=recon, progress=not args.quiet).table
+    else:
+        scores = heldout_scores(recon, seq)
     out = Path(args.out) if args.out else folder / "evaluation.json"
     _write_json(out, {"reconstruction": str(folder.resolve()), "sequence": repr(seq),
                       "holdout_frames": recon.holdout_indices.tolist(), "scores": scores})
