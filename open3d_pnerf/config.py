@@ -51,6 +51,10 @@ class ReconstructionConfig:
     """The learning rate decays exponentially to lr * lr_final_factor at the end."""
     gains: LossGains = dataclasses.field(default_factory=LossGains)
     """Loss gains Kc, Kd, Kz (and the DS-NeRF gain)."""
+    depth_gain_final_factor: float = 0.1
+    """The PNeRF depth gains Kd and Kz decay exponentially over training to this fraction
+    of `gains` (1.0 = constant): geometry first, colour refined late. Measured on the
+    synthetic room with 10 views (README): better PSNR and F-score than constant 0.05."""
     coarse_loss: bool = True
     """Add the coarse-render terms (the paper's coarse + fine losses)."""
     grid_resolutions: tuple = (16, 32, 64, 128, 192)
@@ -154,6 +158,7 @@ class ReconstructionConfig:
             ("lr_final_factor", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
             ("gains", lambda v: isinstance(v, LossGains) and all(number(g) and g >= 0 for g in dataclasses.astuple(v)),
              "LossGains with numbers >= 0"),
+            ("depth_gain_final_factor", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
             ("grid_resolutions", lambda v: len(v) >= 1 and all(count(r, 2) for r in v), "a non-empty tuple of ints >= 2"),
             ("grid_features", count, "an int >= 1"),
             ("hash_levels", count, "an int >= 1"),

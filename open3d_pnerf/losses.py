@@ -25,10 +25,11 @@ class LossGains:
 
     color: float = 1.0
     """Kc: colour L1."""
-    density: float = 0.05
-    """Kd: PNeRF density-PDF L1 (per-ray mass difference, in [0, 2])."""
-    depth: float = 0.05
-    """Kz: expected-depth L1, per metre of error."""
+    density: float = 0.5
+    """Kd: PNeRF density-PDF L1 (per-ray mass difference, in [0, 2]); at the start of
+    training (see ReconstructionConfig.depth_gain_final_factor)."""
+    depth: float = 0.5
+    """Kz: expected-depth L1, per metre of error; at the start of training."""
     dsnerf: float = 0.05
     """DS-NeRF ray-distribution loss gain (loss="dsnerf" only)."""
 

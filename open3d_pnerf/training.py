@@ -3,6 +3,7 @@ evaluation, atomic checkpoints, clean stop on Ctrl-C and on a NaN loss."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import OrderedDict
 from pathlib import Path
@@ -15,7 +16,7 @@ from ._files import atomic_write
 from .config import ReconstructionConfig
 from .data.sequence import RGBDSequence
 from .errors import CheckpointError, TrainingError
-from .losses import total_loss
+from .losses import LossGains, total_loss
 from .rendering import SamplingConfig, make_rays, render_rays
 from .targets import DepthTargets, ray_norms
 
@@ -144,6 +145,11 @@ class Trainer:
         for group in self.optimizer.param_groups:
             group["lr"] = lr
 
+    def _gains(self) -> LossGains:
+        """config.gains with Kd and Kz decayed by depth_gain_final_factor ** progress."""
+        g, f = self.config.gains, self.config.depth_gain_final_factor ** self._progress_fraction()
+        return dataclasses.replace(g, density=g.density * f, depth=g.depth * f)
+
     def _done(self) -> bool:
         if self.step >= self.config.max_steps:
             return True
@@ -158,7 +164,7 @@ class Trainer:
             self.generator, with_coarse=self.config.coarse_loss,
         )
         renders = [fine] + ([coarse] if coarse is not None else [])
-        terms = total_loss(self.config.loss, renders, rgb, mean, sigma, self.config.gains)
+        terms = total_loss(self.config.loss, renders, rgb, mean, sigma, self._gains())
         loss = terms["loss"]
         if not torch.isfinite(loss):
             raise TrainingError(

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+import open3d_pnerf.training as training_module
 from open3d_pnerf.config import ReconstructionConfig
 from open3d_pnerf.data import load_sample
 from open3d_pnerf.errors import CheckpointError, ConfigError, TrainingError
@@ -426,3 +427,21 @@ def test_render_field_is_chunk_independent_and_deterministic(scene):
     for k in a:
         torch.testing.assert_close(a[k], b[k])
     assert a["color"].shape == (len(rays), 3) and a["depth"].shape == (len(rays),)
+
+
+def test_depth_gains_decay_to_their_final_factor_and_colour_stays(scene, monkeypatch):
+    cfg = config(gains={"color": 1.0, "density": 0.5, "depth": 0.4, "dsnerf": 0.2}, depth_gain_final_factor=0.1,
+                 max_steps=100)
+    trainer = make_trainer(scene, cfg)
+    for step, factor in ((0, 1.0), (50, 0.1 ** 0.5), (100, 0.1)):
+        trainer.step = step
+        g = trainer._gains()
+        assert g.color == 1.0
+        np.testing.assert_allclose([g.density, g.depth], np.array([0.5, 0.4]) * factor, rtol=1e-12)
+        assert g.dsnerf == 0.2  # the DS-NeRF baseline keeps its gain
+    seen = []
+    real = training_module.total_loss
+    monkeypatch.setattr(training_module, "total_loss", lambda *a: seen.append(a[-1]) or real(*a))
+    trainer.step = 100
+    trainer.train_step()
+    assert seen[-1].depth == pytest.approx(0.04)  # the step uses the decayed gains
