@@ -15,9 +15,10 @@ sparse, default 10, evenly spaced over the non-held-out frames):
 Every run reports held-out PSNR/SSIM, depth L1, depth calibration, mesh accuracy/
 completeness/F-score (synthetic), wall time, peak RSS and training samples/s; the TSDF
 baseline is fused from the same training frames and poses. Each run is a fresh process
-(so peak RSS is per run).
+(so peak RSS is per run); `--jobs` of them run at once (default: one per core, one torch
+thread each).
 
-    python benchmarks/bench_suite.py [--budget 90] [--threads 1] [--datasets synthetic,tum,7scenes] [--quick]
+    python benchmarks/bench_suite.py [--budget 75] [--jobs 2] [--datasets synthetic,tum,7scenes] [--quick]
 
 Writes benchmarks/results/suite.json, suite.md and suite_*.png (--quick: tiny synthetic
 runs, results/suite_quick.*, a smoke test of the script in ~3 minutes).
@@ -31,7 +32,7 @@ import multiprocessing
 import platform
 import resource
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -121,7 +122,8 @@ def plan(datasets, views: int, quick: bool) -> list[dict]:
 
 def markdown(results: list[dict], meta: dict) -> str:
     mm = lambda v: f"{1000 * v:.1f}" if v is not None else "-"  # noqa: E731
-    lines = [f"Budget {meta['budget_s']:.0f} s of training per run, {meta['threads']} thread(s); {meta['machine']}.",
+    lines = [f"Budget {meta['budget_s']:.0f} s of training per run, {meta['threads']} thread(s), {meta['jobs']} run(s) "
+             f"at once; the suite took {meta['wall_minutes']} min; {meta['machine']}.",
              "Held out: every 4th frame. Views: training frames (all = every non-held-out frame).", ""]
     head = ("| dataset | run | views | poses | PSNR (dB) | SSIM | depth L1 (mm) | within 1σ | "
             "acc. (mm) | compl. (mm) | F@20mm | F@50mm | TSDF PSNR (all / hits) | TSDF depth L1 (mm) | "
@@ -167,8 +169,9 @@ def sweep_figure(results: list[dict], path: Path) -> None:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--budget", type=float, default=90.0, help="training seconds per run")
+    ap.add_argument("--budget", type=float, default=75.0, help="training seconds per run")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
     ap.add_argument("--datasets", default="synthetic,tum,7scenes")
     ap.add_argument("--views", type=int, default=10, help="training views of the sparse-view runs")
     ap.add_argument("--quick", action="store_true", help="tiny synthetic runs: a smoke test of the script")
@@ -182,31 +185,37 @@ def main():
     stem = "suite_quick" if args.quick else "suite"
     cache = OUT / "cache"
     cache.mkdir(parents=True, exist_ok=True)
-    results = []
-    ctx = multiprocessing.get_context("spawn")
-    for spec in plan(datasets, views, args.quick):
+    specs = plan(datasets, views, args.quick)
+    for spec in specs:
         spec.update(threads=args.threads, budget=budget, quick=args.quick, cache=str(cache))
         if spec["variant"] == "pnerf" and spec["views"] == views and spec["poses"] == "gt":
             spec["figure"] = str(OUT / f"{stem}_{spec['dataset']}_frame.png")
-        with ProcessPoolExecutor(1, mp_context=ctx) as pool:  # fresh process: per-run peak RSS
-            r = pool.submit(run_one, spec).result()
-        results.append(r)
-        print(f"{r['dataset']:9s} {r['variant']:11s} views {r['views'] or 'all':>3} {r['poses']:7s} "
-              f"PSNR {r['model']['psnr']:.2f} (TSDF {r['tsdf']['psnr']:.2f}) depth L1 "
-              f"{1000 * r['model']['depth_l1']:.1f} mm within1 {r['model']['within_1']:.2f} "
-              f"F@20 {r['model'].get('fscore_20mm', float('nan')):.3f} (TSDF {r['tsdf'].get('fscore_20mm', float('nan')):.3f}) "
-              f"{r['wall_s']:.0f} s {r['peak_rss_mb']} MB", flush=True)
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(args.jobs, multiprocessing.get_context("spawn"), max_tasks_per_child=1) as pool:
+        futures = [pool.submit(run_one, spec) for spec in specs]  # fresh process per run: per-run peak RSS
+        for future in as_completed(futures):
+            print(summary_line(future.result()), flush=True)
+    results = [f.result() for f in futures]
     tracked = {d: float(np.load(cache / f"tracked_{d}.npz")["ate"]) for d in datasets}
     import torch
 
     meta = {"machine": f"{platform.machine()} {platform.processor() or ''} {multiprocessing.cpu_count()} cores, "
                        f"torch {torch.__version__}".replace("  ", " "),
-            "budget_s": budget, "threads": args.threads, "holdout_every": HOLDOUT_EVERY, "views": views,
+            "budget_s": budget, "threads": args.threads, "jobs": args.jobs,
+            "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "holdout_every": HOLDOUT_EVERY, "views": views,
             "tracked_ate_rmse_mm": {d: round(1000 * a, 2) for d, a in tracked.items()}}
     (OUT / f"{stem}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{stem}.md").write_text(markdown(results, meta))
     sweep_figure(results, OUT / f"{stem}_views.png")
     print((OUT / f"{stem}.md").read_text())
+
+
+def summary_line(r: dict) -> str:
+    return (f"{r['dataset']:9s} {r['variant']:11s} views {r['views'] or 'all':>3} {r['poses']:7s} "
+              f"PSNR {r['model']['psnr']:.2f} (TSDF {r['tsdf']['psnr']:.2f}) depth L1 "
+              f"{1000 * r['model']['depth_l1']:.1f} mm within1 {r['model']['within_1']:.2f} "
+              f"F@20 {r['model'].get('fscore_20mm', float('nan')):.3f} (TSDF {r['tsdf'].get('fscore_20mm', float('nan')):.3f}) "
+              f"{r['wall_s']:.0f} s {r['peak_rss_mb']} MB")
 
 
 if __name__ == "__main__":
