@@ -21,10 +21,12 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-bench: $(STAMP)  # needs ../shared/data; about 25 minutes on 2 cores
+bench: $(STAMP)  # needs ../shared/data; see benchmarks/README.md for the time each takes
 	$(PY) benchmarks/bench_tracking.py
 	$(PY) benchmarks/bench_targets.py
 	$(PY) benchmarks/bench_nerf.py
+	$(PY) benchmarks/bench_suite.py
+	$(PY) benchmarks/bench_memory.py
 
 clean:
 	rm -rf $(VENV) out
