@@ -128,15 +128,18 @@ class Reconstruction:
         intrinsic = check_intrinsic(intrinsic or self.intrinsic)
         h, w = intrinsic.height, intrinsic.width
         v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
-        rays = self._rays(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float())
+        out = self._render_pixels(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float(), chunk)
+        out["depth_std"] *= self.depth_sigma_scale
+        return {k: a.reshape(h, w, *a.shape[1:]) for k, a in out.items()}
+
+    def _render_pixels(self, pose, intrinsic, u: torch.Tensor, v: torch.Tensor, chunk: int = 2048) -> dict:
+        """Numpy color (R, 3) in [0, 1], z-depth depth and raw (uncalibrated) depth_std (R,) m,
+        opacity (R,) of pixels (u, v) (R,)."""
+        rays = self._rays(pose, intrinsic, u, v)
         out = render_field(self.field, rays, sampling_of(self.config), chunk)
-        norms = rays.norms
-        return {
-            "color": out["color"].clamp(0, 1).view(h, w, 3).cpu().numpy(),
-            "depth": (out["depth"] / norms).view(h, w).cpu().numpy(),
-            "depth_std": (out["depth_var"].sqrt() / norms * self.depth_sigma_scale).view(h, w).cpu().numpy(),
-            "opacity": out["opacity"].view(h, w).cpu().numpy(),
-        }
+        return {"color": out["color"].clamp(0, 1).cpu().numpy(), "depth": (out["depth"] / rays.norms).cpu().numpy(),
+                "depth_std": (out["depth_var"].sqrt() / rays.norms).cpu().numpy(),
+                "opacity": out["opacity"].cpu().numpy()}
 
     def depth_pdf(self, pose, pixels_uv, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None) -> dict:
         """The model's depth distribution along the rays of R pixels, in z-depth metres.
@@ -183,11 +186,9 @@ class Reconstruction:
             pix = rng.choice(pix, min(pixels, len(pix)), replace=False)
             w = seq.image_size[1]
             uv = torch.as_tensor(np.stack([pix % w, pix // w], 1), dtype=torch.float32, device=self.device)
-            rays = self._rays(self.poses[i], seq.intrinsic, uv[:, 0], uv[:, 1])
-            out = render_field(self.field, rays, sampling_of(self.config))
-            z, std = (out["depth"] / rays.norms).cpu().numpy(), (out["depth_var"].sqrt() / rays.norms).cpu().numpy()
-            ok = out["opacity"].cpu().numpy() > 0.5
-            ratios.append(np.abs(z - depth[pix])[ok] / np.maximum(std[ok], 1e-6))
+            out = self._render_pixels(self.poses[i], seq.intrinsic, uv[:, 0], uv[:, 1])
+            ok = out["opacity"] > 0.5
+            ratios.append(np.abs(out["depth"] - depth[pix])[ok] / np.maximum(out["depth_std"][ok], 1e-6))
         ratios = np.concatenate(ratios) if ratios else np.zeros(0)
         self.depth_sigma_scale = float(np.quantile(ratios, coverage)) if ratios.size else 1.0
         return self.depth_sigma_scale
