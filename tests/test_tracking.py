@@ -274,3 +274,18 @@ def test_large_motion_failures_are_reported():
     with pytest.warns(UserWarning, match="odometry failed into frames"):
         traj = track(seq, loop_closure=False, progress=False)
     assert len(traj.failed_frames) >= 3
+
+
+def test_keyframe_spacing_bounds_the_number_of_keyframes_on_long_sequences():
+    from open3d_pnerf.tracking.tracker import keyframe_spacing
+
+    assert keyframe_spacing(798, 5, 200) == 5  # short sequences keep every 5th frame
+    assert keyframe_spacing(2000, 5, 200) == 10
+    assert len(range(0, 2001, keyframe_spacing(2001, 5, 200))) <= 200
+    assert keyframe_spacing(100_000, 5, None) == 5
+
+
+def test_track_rejects_a_bad_max_keyframes():
+    seq = load_sample()
+    with pytest.raises(InputError, match="max_keyframes"):
+        track(seq, max_keyframes=1, progress=False)

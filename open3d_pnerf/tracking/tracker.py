@@ -32,6 +32,7 @@ def track(
     sequence: RGBDSequence,
     *,
     keyframe_every: int = 5,
+    max_keyframes: int | None = 200,
     loop_closure: bool = True,
     point_noise_m: float = DEFAULT_POINT_NOISE_M,
     max_depth: float = 3.0,
@@ -51,7 +52,9 @@ def track(
        if that fails too it keeps frame i-1's pose through an uncertain edge whose
        covariance spans the plausible-motion limits (huge), and a warning names it.
     2. Loop closures (``loop_closure=True``): every ``keyframe_every``-th frame is a
-       keyframe; keyframe pairs within ``loop_max_distance_m`` / ``loop_max_angle_deg`` of
+       keyframe (sparser on long sequences so that there are at most ``max_keyframes``
+       keyframes, None = no limit: loop-closure work grows with the number of keyframes,
+       not with the length of the sequence); keyframe pairs within ``loop_max_distance_m`` / ``loop_max_angle_deg`` of
        each other (at most ``loops_per_keyframe`` per keyframe) are registered from their
        current relative pose with ``loop_odometry`` (None: ``odometry``, made
        point-to-plane when the colour is not registered to the depth), verified by the same
@@ -68,6 +71,8 @@ def track(
     n = len(check_sequence(sequence, 2, "track(): sequence"))
     if not isinstance(keyframe_every, (int, np.integer)) or keyframe_every < 1:
         raise InputError(f"keyframe_every must be an integer >= 1, got {keyframe_every!r}")
+    if max_keyframes is not None and (not isinstance(max_keyframes, (int, np.integer)) or max_keyframes < 2):
+        raise InputError(f"max_keyframes must be None or an integer >= 2, got {max_keyframes!r}")
     if not point_noise_m > 0:
         raise InputError(f"point_noise_m must be > 0 metres, got {point_noise_m!r}")
     run = _Run(FrameRegistration(sequence, max_depth, device), odometry, point_noise_m)
@@ -82,7 +87,7 @@ def track(
             "(consecutive frames must overlap)"
         )
     if loop_closure:
-        keyframes = list(range(0, n, keyframe_every))
+        keyframes = list(range(0, n, keyframe_spacing(n, keyframe_every, max_keyframes)))
         linked = {(e.source_node_id, e.target_node_id) for e in run.graph.edges}
         pairs = loop_closure_candidates(
             np.stack(run.poses), keyframes, linked,
@@ -105,6 +110,14 @@ def track(
         failed_frames=run.failed_frames,
         timestamps=np.asarray(sequence.timestamps, dtype=np.float64).copy(),
     )
+
+
+def keyframe_spacing(n_frames: int, keyframe_every: int, max_keyframes: int | None) -> int:
+    """Frames between keyframes: `keyframe_every`, widened so that at most `max_keyframes`
+    of `n_frames` are keyframes (None: no limit)."""
+    if max_keyframes is None:
+        return keyframe_every
+    return max(keyframe_every, -(-n_frames // max_keyframes))
 
 
 def _default_loop_odometry(sequence: RGBDSequence, odometry: OdometryOptions) -> OdometryOptions:
