@@ -20,7 +20,10 @@ from .._files import atomic_write
 from ..errors import DatasetError, InputError
 from .sequence import RGBDSequence, check_first_frame, check_intrinsic, check_poses, file_reader
 
-# TUM calibration of the (registered) colour camera, per Kinect; distortion is ignored.
+# TUM calibration of the (registered) colour camera, per Kinect. Lens distortion is ignored:
+# undistorting the fr1 colour with TUM's published coefficients made colour agree worse across
+# views of the shared fr1/xyz frames (depth warped by the mocap poses), so the depth is taken
+# to be registered to an undistorted colour image already.
 TUM_INTRINSICS = {
     "freiburg1": (517.3, 516.5, 318.6, 255.3),
     "freiburg2": (520.9, 521.0, 325.1, 249.7),
