@@ -72,21 +72,26 @@ def dsnerf_loss(weights, t, edges, mu, sigma, eps: float = 1e-5) -> torch.Tensor
     return (-torch.log(weights + eps) * torch.exp(-((t - mu[:, None]) ** 2) / (2 * s * s)) * delta).sum(-1)
 
 
-def total_loss(kind: str, renders, target_rgb, mu, sigma, gains: LossGains = LossGains()) -> dict:
+def total_loss(kind: str, renders, target_rgb, mu, sigma, gains: LossGains = LossGains(),
+               n_rays: int | None = None, n_target: int | None = None) -> dict:
     """Loss terms and their weighted sum over renders (e.g. [fine, coarse]).
 
     kind: "pnerf", "photometric" or "dsnerf". mu, sigma (R,): ray-distance targets, NaN
     where a ray has none (those rays get the colour term only). Returns a dict of scalar
     tensors: "loss" (the total) and each term summed over the renders.
+    n_rays, n_target: when these R rays are a share of a larger batch, that batch's ray
+    count and count of rays with a target; every per-ray mean is then taken over the whole
+    batch, so the shares' losses (and gradients) add up to the whole batch's.
     """
     if kind not in LOSSES:
         raise ValueError(f"unknown loss {kind!r}; expected one of {LOSSES}")
     has = torch.isfinite(mu)
-    n_target = has.sum().clamp(min=1)
+    n_target = has.sum().clamp(min=1) if n_target is None else max(n_target, 1)
+    share = 1.0 if n_rays is None else len(target_rgb) / n_rays  # colour: this share's part of the batch mean
     mu_v, sigma_v = mu[has], sigma[has]
     terms = {"color": 0.0, "density": 0.0, "depth": 0.0, "dsnerf": 0.0}
     for r in renders:
-        terms["color"] = terms["color"] + color_l1(r.color, target_rgb)
+        terms["color"] = terms["color"] + color_l1(r.color, target_rgb) * share
         if kind == "photometric" or not has.any():
             continue
         w, t, e = r.weights[has], r.t[has], r.edges[has]

@@ -8,9 +8,35 @@ bin widths, and the PNeRF density loss compares per-bin masses, so non-uniform s
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from .rays import Rays
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchShare:
+    """Rows [start, stop) of a batch of `size` rays, with the batch's random numbers.
+
+    Given to the samplers in place of a generator, it makes them draw their uniforms for the
+    whole batch from `generator` and keep these rows: a share of a batch is sampled exactly
+    as inside the whole batch (data-parallel training renders one share per rank).
+    """
+
+    generator: torch.Generator
+    size: int
+    start: int
+    stop: int
+
+
+def uniform(r: int, n: int, device, generator: torch.Generator | BatchShare | None = None) -> torch.Tensor:
+    """(r, n) uniforms in [0, 1) from a generator, or this share's rows of the whole batch's."""
+    if isinstance(generator, BatchShare):
+        if r != generator.stop - generator.start:
+            raise ValueError(f"{r} rays but the batch share has rows [{generator.start}, {generator.stop})")
+        return torch.rand(generator.size, n, device=device, generator=generator.generator)[generator.start:generator.stop]
+    return torch.rand(r, n, device=device, generator=generator)
 
 
 def bin_edges(t: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
@@ -23,17 +49,19 @@ def bin_edges(t: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.T
     return torch.cat([first, mid, last], 1)
 
 
-def stratified(rays: Rays, n: int, generator: torch.Generator | None = None, jitter: bool = True) -> torch.Tensor:
+def stratified(rays: Rays, n: int, generator: torch.Generator | BatchShare | None = None,
+               jitter: bool = True) -> torch.Tensor:
     """(R, n) sorted samples, one uniformly jittered per equal slice of [near, far]."""
     r = len(rays)
     u = torch.arange(n, device=rays.near.device, dtype=torch.float32)
-    offset = torch.rand(r, n, device=u.device, generator=generator) if jitter else torch.full((r, n), 0.5, device=u.device)
+    offset = uniform(r, n, u.device, generator) if jitter else torch.full((r, n), 0.5, device=u.device)
     s = (u + offset) / n
     return rays.near[:, None] + s * (rays.far - rays.near)[:, None]
 
 
 def importance(
-    edges: torch.Tensor, weights: torch.Tensor, n: int, generator: torch.Generator | None = None, jitter: bool = True
+    edges: torch.Tensor, weights: torch.Tensor, n: int, generator: torch.Generator | BatchShare | None = None,
+    jitter: bool = True
 ) -> torch.Tensor:
     """(R, n) sorted samples drawn from the piecewise-constant PDF of `weights` on `edges`.
 
@@ -45,7 +73,7 @@ def importance(
     cdf = torch.cat([torch.zeros_like(pdf[:, :1]), pdf.cumsum(-1)], -1).clamp(max=1)
     r = weights.shape[0]
     base = torch.arange(n, device=w.device, dtype=torch.float32)
-    offset = torch.rand(r, n, device=w.device, generator=generator) if jitter else torch.full((r, n), 0.5, device=w.device)
+    offset = uniform(r, n, w.device, generator) if jitter else torch.full((r, n), 0.5, device=w.device)
     u = ((base + offset) / n).contiguous()
     idx = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, cdf.shape[1] - 1)
     c0, c1 = cdf.gather(1, idx - 1), cdf.gather(1, idx)
@@ -55,7 +83,8 @@ def importance(
 
 
 def depth_guided(
-    rays: Rays, mean: torch.Tensor, sigma: torch.Tensor, n: int, generator: torch.Generator | None = None, spread: float = 3.0
+    rays: Rays, mean: torch.Tensor, sigma: torch.Tensor, n: int, generator: torch.Generator | BatchShare | None = None,
+    spread: float = 3.0
 ) -> torch.Tensor:
     """(R, n) samples stratified over mean +- spread * sigma (ray-distance units), clipped to [near, far].
 
@@ -64,7 +93,7 @@ def depth_guided(
     """
     r = mean.shape[0]
     base = torch.arange(n, device=mean.device, dtype=torch.float32)
-    u = (base + torch.rand(r, n, device=mean.device, generator=generator)) / n
+    u = (base + uniform(r, n, mean.device, generator)) / n
     lo = torch.special.ndtr(torch.tensor(-spread))
     p = lo + u * (1 - 2 * lo)
     t = mean[:, None] + sigma[:, None] * torch.special.ndtri(p)

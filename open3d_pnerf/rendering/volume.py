@@ -7,7 +7,7 @@ import dataclasses
 import torch
 
 from .rays import Rays
-from .samplers import bin_edges, depth_guided, importance, merge, stratified
+from .samplers import BatchShare, bin_edges, depth_guided, importance, merge, stratified
 
 
 @dataclasses.dataclass
@@ -62,7 +62,7 @@ def render_rays(
     sampling: SamplingConfig,
     target_mean: torch.Tensor | None = None,
     target_sigma: torch.Tensor | None = None,
-    generator: torch.Generator | None = None,
+    generator: torch.Generator | BatchShare | None = None,
     jitter: bool = True,
     with_coarse: bool = False,
 ) -> tuple[RayRender, RayRender | None]:
@@ -74,6 +74,8 @@ def render_rays(
     samples, so the paper's coarse loss terms cost no extra field evaluations.
     target_mean / target_sigma: (R,) ray-distance Gaussian targets, NaN where none; rays
     with a target get n_guided samples in mean +- 3 sigma, the others extra importance samples.
+    generator: the random numbers' source; a :class:`BatchShare` renders rows of a larger
+    batch exactly as that batch would.
     """
     t_c = stratified(rays, sampling.n_coarse, generator, jitter)
     e_c = bin_edges(t_c, rays.near, rays.far)
