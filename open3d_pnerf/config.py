@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from .distributed import BACKENDS
 from .errors import ConfigError
 from .fields import FIELDS
 from .losses import LOSSES, LossGains
@@ -34,9 +35,17 @@ class ReconstructionConfig:
     seed: int = 0
     """Seed of every random choice (rays, samples, initialisation)."""
     device: str = "cpu"
-    """Torch device for the field: "cpu", "cuda", "cuda:1", ..."""
+    """Torch device for the field: "cpu", "cuda", "cuda:1", ... Launched by torchrun with
+    several ranks, any CUDA device means each rank's own GPU, cuda:LOCAL_RANK."""
+    dist_backend: str = "auto"
+    """torch.distributed backend when launched by torchrun with several ranks: "auto" (NCCL
+    on CUDA, gloo on CPU), "gloo" or "nccl". Unused in a single process."""
+    dist_timeout_s: float = 600.0
+    """Seconds any rank waits in a collective (joining, broadcasts, the per-step gradient sum)
+    before raising DistributedError: a dead or hung rank gives an error, not a hang. Must
+    exceed the longest gap between ranks (rank 0 writing a checkpoint, uneven tracking)."""
     rays_per_batch: int = 512
-    """Rays per optimiser step."""
+    """Rays per optimiser step; with several ranks, the whole batch, split between them."""
     n_coarse: int = 16
     """Stratified samples per ray (coarse pass)."""
     n_fine: int = 8
@@ -175,6 +184,8 @@ class ReconstructionConfig:
             ("min_opacity", lambda v: number(v) and 0 <= v <= 1, "a number in [0, 1]"),
             *[(name, lambda v: isinstance(v, bool), "True or False")
               for name in ("depth_guided_sampling", "coarse_loss", "calibrate_depth_sigma", "progress")],
+            ("dist_backend", lambda v: v in BACKENDS, f"one of {BACKENDS}"),
+            ("dist_timeout_s", lambda v: number(v) and v > 0, "a number > 0 (seconds)"),
             ("device", lambda v: isinstance(v, str) and v.split(":")[0] in ("cpu", "cuda", "mps"),
              '"cpu", "cuda" or "cuda:N"'),
         ]

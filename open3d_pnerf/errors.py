@@ -35,3 +35,8 @@ class TrackingError(PNeRFError, RuntimeError):
 
 class TrainingError(PNeRFError, RuntimeError):
     """Training diverged (NaN/inf loss) or cannot continue."""
+
+
+class DistributedError(PNeRFError, RuntimeError):
+    """Data-parallel training could not join its process group, or a collective failed or
+    timed out because another rank died or hung."""
