@@ -1,12 +1,15 @@
 """The `open3d-pnerf` command line: demo, reconstruct, track, tsdf, render, evaluate.
 
 Errors a user can fix are printed as one line (`open3d-pnerf: error: ...`) with exit code 2;
-Ctrl-C exits with 130 after training has written its checkpoint.
+Ctrl-C exits with 130 after training has written its checkpoint. `reconstruct` and `demo`
+train data-parallel when launched by torchrun (`torchrun --nproc-per-node N -m
+open3d_pnerf.cli reconstruct ...`): rank 0 prints and writes every output.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -47,14 +50,15 @@ def _config(args):
     overrides = {k: v for k, v in {
         "loss": args.loss, "field": args.field, "device": args.device, "max_steps": args.max_steps,
         "time_budget_s": args.time_budget, "holdout_every": args.holdout_every, "seed": args.seed,
-        "image_scale": args.image_scale,
+        "image_scale": args.image_scale, "dist_backend": args.dist_backend, "dist_timeout_s": args.dist_timeout,
     }.items() if v is not None}
     overrides["progress"] = not args.quiet
     return ReconstructionConfig.preset(args.preset, **overrides)
 
 
-def _poses_for(seq, args, out: Path, reuse: bool = False):
-    """(poses, covariances): GT if asked, else tracking (reused from out/tracking when resuming)."""
+def _poses_for(seq, args, out: Path, reuse: bool = False, write_cache: bool = True):
+    """(poses, covariances): GT if asked, else tracking (reused from out/tracking when resuming,
+    written there if write_cache)."""
     from .errors import InputError
     from .tracking import track
 
@@ -66,9 +70,10 @@ def _poses_for(seq, args, out: Path, reuse: bool = False):
     if reuse and (cache / "poses.npy").is_file():
         return np.load(cache / "poses.npy"), np.load(cache / "covariances.npy")
     traj = track(seq, progress=not args.quiet)
-    cache.mkdir(parents=True, exist_ok=True)
-    np.save(cache / "poses.npy", traj.poses)
-    np.save(cache / "covariances.npy", traj.covariances)
+    if write_cache:
+        cache.mkdir(parents=True, exist_ok=True)
+        np.save(cache / "poses.npy", traj.poses)
+        np.save(cache / "covariances.npy", traj.covariances)
     return traj.poses, traj.covariances
 
 
@@ -98,20 +103,38 @@ def _write_json(path: Path, data: dict) -> None:
     atomic_write(path, lambda p: Path(p).write_text(json.dumps(data, indent=1, default=float)))
 
 
-def run_reconstruction(seq, config, out: Path, args, resume: bool = False) -> dict:
-    """Track (or reuse poses), train, export, compare with TSDF; write outputs + report.md."""
+@contextlib.contextmanager
+def _ranks(config, args):
+    """The torchrun process group (if any) of a training command; ranks other than 0 stay quiet."""
+    from .distributed import distributed_session
+
+    with distributed_session(config.device, config.dist_backend, config.dist_timeout_s) as dist:
+        if not dist.is_main:
+            args.quiet = True
+        yield dist
+
+
+def run_reconstruction(seq, config, out: Path, args, resume: bool = False, dist=None) -> dict:
+    """Track (or reuse poses), train, export, compare with TSDF; write outputs + report.md.
+
+    dist: the DistributedContext of a torchrun launch; ranks other than 0 track and train
+    but write nothing and return {}."""
     from .comparison import compare_with_tsdf
+    from .distributed import DistributedContext
     from .reconstruction import reconstruct
     from .tracking import absolute_trajectory_error
 
+    dist = dist or DistributedContext()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    poses, covs = _poses_for(seq, args, out, reuse=resume)
+    poses, covs = _poses_for(seq, args, out, reuse=resume, write_cache=dist.is_main)
     ate = None
     if seq.gt_poses is not None and not args.gt_poses:
         ate = absolute_trajectory_error(poses, seq.gt_poses)["rmse"]
     tracking_s = time.perf_counter() - t0
     recon = reconstruct(seq, config, poses=poses, covariances=covs, checkpoint_dir=out / "checkpoints", resume=resume)
+    if not dist.is_main:
+        return {}
     recon.stats["timings"]["tracking_s"] = round(tracking_s, 2)
     recon.save(out)
     scores, figures = {}, []
@@ -163,8 +186,12 @@ def cmd_demo(args) -> int:
     args.data, args.gt_poses = "sample", False
     seq = load_sample()
     config = _config(args)
-    _write_run_config(Path(args.out), config, args)
-    report = run_reconstruction(seq, config, Path(args.out), args)
+    with _ranks(config, args) as dist:
+        if dist.is_main:
+            _write_run_config(Path(args.out), config, args)
+        report = run_reconstruction(seq, config, Path(args.out), args, dist=dist)
+    if not dist.is_main:
+        return EXIT_OK
     print((Path(args.out) / "report.md").read_text())
     print(f"wrote {args.out}/mesh.ply, point_cloud.ply, tsdf_mesh.ply, report.md")
     return EXIT_OK if report else EXIT_ERROR
@@ -183,8 +210,10 @@ def cmd_reconstruct(args) -> int:
     else:
         seq = _load(args)
         config = _config(args)
-        _write_run_config(out, config, args)
-    run_reconstruction(seq, config, out, args, resume=bool(args.resume))
+    with _ranks(config, args) as dist:
+        if dist.is_main and not args.resume:
+            _write_run_config(out, config, args)
+        run_reconstruction(seq, config, out, args, resume=bool(args.resume), dist=dist)
     if not args.quiet:
         print((out / "report.md").read_text())
     return EXIT_OK
@@ -301,6 +330,10 @@ def _add_training_options(p):
     p.add_argument("--holdout-every", type=int, help="hold out every k-th frame for evaluation")
     p.add_argument("--image-scale", type=float, help="training image scale in (0, 1]")
     p.add_argument("--seed", type=int, help="random seed")
+    p.add_argument("--dist-backend", choices=["auto", "gloo", "nccl"],
+                   help="under torchrun: torch.distributed backend (default auto: nccl on CUDA, gloo on CPU)")
+    p.add_argument("--dist-timeout", type=float, metavar="SECONDS",
+                   help="under torchrun: how long a rank waits for the others before failing (default 600)")
 
 
 def _add_data_options(p, data=True):

@@ -24,6 +24,7 @@ from ._files import atomic_write_all
 from .config import ReconstructionConfig
 from .data.loaders import write_log_trajectory, write_tum_trajectory
 from .data.sequence import RGBDSequence, check_intrinsic, check_poses, check_sequence, scale_intrinsic
+from .distributed import DistributedContext, distributed_session
 from .errors import CheckpointError, ConfigError, InputError
 from .export import (
     backproject,
@@ -360,12 +361,31 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     depth targets, training the field, exporting mesh and point cloud.
     config: a ReconstructionConfig (default: the "fast" preset). checkpoint_dir: where
     training checkpoints go; resume=True continues from its checkpoint.pt.
+
+    Launched by torchrun with several ranks, training is data-parallel (see
+    :mod:`open3d_pnerf.distributed`): every rank tracks and builds depth targets itself and
+    takes rank 0's poses, covariances and scene box; rank 0 shows progress, writes the
+    checkpoints, calibrates and exports. The other ranks return the same trained field
+    without calibration or export (no mesh or point cloud). Resuming reads checkpoint_dir
+    on every rank: it must be the same checkpoint on every machine.
     """
     n = len(check_sequence(rgbd_sequence, 2, "reconstruct(): rgbd_sequence"))
     config = config or ReconstructionConfig.preset("fast")
     if not isinstance(config, ReconstructionConfig):
         raise InputError(f"config must be a ReconstructionConfig, got {type(config).__name__}")
     config.validate()
+    with distributed_session(config.device, config.dist_backend, config.dist_timeout_s) as dist:
+        return _reconstruct(rgbd_sequence, config, poses, covariances, checkpoint_dir, resume, dist)
+
+
+def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, poses, covariances, checkpoint_dir,
+                 resume: bool, dist: DistributedContext) -> Reconstruction:
+    """reconstruct() on one rank of `dist` (a single process by default)."""
+    n = len(rgbd_sequence)
+    if not dist.is_main:
+        config = config.replace(progress=False)
+    if dist.enabled:
+        config = config.replace(device=dist.device(config.device))
     train_idx, hold_idx = split_frames(n, config.holdout_every, config.train_views)
     if poses is not None:
         poses, covariances = check_poses(poses, n, "poses"), check_covariances(covariances, n)
@@ -384,6 +404,9 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
 
         trajectory = track(rgbd_sequence, point_noise_m=config.point_noise_m, progress=config.progress)
         poses, covariances = trajectory.poses, trajectory.covariances
+    if dist.enabled:  # every rank trains on rank 0's trajectory, bit for bit
+        poses = dist.broadcast_array(poses, "the poses' broadcast", config.device)
+        covariances = dist.broadcast_array(covariances, "the covariances' broadcast", config.device)
     timings["tracking_s"] = round(time.perf_counter() - t0, 2)
     stages.update(1)
 
@@ -395,12 +418,12 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     h, w = train_seq.image_size
     storage = None  # long sequences keep their targets in memory-mapped files, not in RAM
     if len(train_idx) * h * w * TARGET_BYTES_PER_PIXEL > TARGETS_IN_RAM_MAX_BYTES:
-        storage = Path(checkpoint_dir) / "targets" if checkpoint_dir else Path(
-            tempfile.mkdtemp(prefix="pnerf-targets-"))
+        folder = f"targets-rank{dist.rank}" if dist.enabled else "targets"  # ranks may share checkpoint_dir
+        storage = Path(checkpoint_dir) / folder if checkpoint_dir else Path(tempfile.mkdtemp(prefix="pnerf-targets-"))
     targets = depth_targets(train_seq, poses=poses[train_idx], covariances=covariances[train_idx],
                             storage_dir=storage, progress=config.progress)
     K = train_seq.K
-    aabb = scene_box(targets, poses[train_idx], K)
+    aabb = dist.broadcast_array(scene_box(targets, poses[train_idx], K), "the scene box's broadcast", config.device)
     timings["targets_s"] = round(time.perf_counter() - t1, 2)
     stages.update(1)
 
@@ -408,8 +431,8 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     field = build_field(config, aabb)
     device = field.aabb.device
     batcher = RayBatcher(train_seq, poses[train_idx], targets, field.aabb, device, config.seed, config.cache_frames)
-    eval_rays = _holdout_rays(rgbd_sequence, hold_idx, poses, config, field.aabb, device)
-    trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir)
+    eval_rays = _holdout_rays(rgbd_sequence, hold_idx, poses, config, field.aabb, device) if dist.is_main else None
+    trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir, dist)
     if checkpoint is not None:
         trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt", checkpoint)
     try:
@@ -421,18 +444,21 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
             del batcher, trainer, targets
             shutil.rmtree(storage, ignore_errors=True)
     stages.update(1)
+    recon = Reconstruction(field, config, poses, covariances, train_seq.intrinsic, aabb, train_idx, hold_idx,
+                           rgbd_sequence.timestamps,
+                           stats={"training": train_stats, "history": history, "targets": targets_summary,
+                                  "timings": timings})
+    if not dist.is_main:  # rank 0 calibrates and exports
+        stages.close()
+        return recon
 
     stages.set_postfix_str("export")
     t2 = time.perf_counter()
-    recon = Reconstruction(field, config, poses, covariances, train_seq.intrinsic, aabb, train_idx, hold_idx,
-                           rgbd_sequence.timestamps,
-                           stats={"training": train_stats, "history": history, "targets": targets_summary})
     if config.calibrate_depth_sigma:
         recon.calibrate_depth_sigma(rgbd_sequence)
     recon.export_geometry(progress=config.progress)
     timings["export_s"] = round(time.perf_counter() - t2, 2)
     timings["total_s"] = round(time.perf_counter() - t0, 2)
-    recon.stats["timings"] = timings
     stages.update(1)
     stages.close()
     return recon

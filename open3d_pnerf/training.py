@@ -1,9 +1,12 @@
 """Training: rays drawn from images on the fly, Adam with an exponential schedule, held-out
-evaluation, atomic checkpoints, clean stop on Ctrl-C and on a NaN loss."""
+evaluation, atomic checkpoints, clean stop on Ctrl-C and on a NaN loss; data-parallel over
+the ranks of a torchrun launch (see :mod:`open3d_pnerf.distributed`)."""
 
 from __future__ import annotations
 
 import dataclasses
+import signal
+import threading
 import time
 from collections import OrderedDict
 from pathlib import Path
@@ -15,9 +18,10 @@ from tqdm.auto import tqdm
 from ._files import atomic_write
 from .config import ReconstructionConfig
 from .data.sequence import RGBDSequence
-from .errors import CheckpointError, TrainingError
+from .distributed import DistributedContext
+from .errors import CheckpointError, ConfigError, TrainingError
 from .losses import LossGains, total_loss
-from .rendering import SamplingConfig, make_rays, render_rays
+from .rendering import BatchShare, SamplingConfig, make_rays, render_rays
 from .targets import DepthTargets, ray_norms
 
 CHECKPOINT_VERSION = 1
@@ -116,12 +120,20 @@ class Trainer:
     """Optimises a field on rays from a :class:`RayBatcher`.
 
     eval_rays: optional (Rays, rgb) of held-out pixels scored every `config.eval_every`
-    steps. checkpoint_dir: where ``checkpoint.pt`` is written atomically.
+    steps. checkpoint_dir: where ``checkpoint.pt`` is written atomically (by rank 0 only).
+    dist: this process's place in a data-parallel run (default: a single process). With
+    several ranks each step renders this rank's share of the same `rays_per_batch` rays,
+    sums gradients and statistics over the ranks, and follows rank 0's clock for the time
+    budget and the schedule; a Ctrl-C on any rank stops every rank after the same step.
     """
 
     def __init__(self, field, batcher: RayBatcher, config: ReconstructionConfig, eval_rays=None,
-                 checkpoint_dir: str | Path | None = None):
+                 checkpoint_dir: str | Path | None = None, dist: DistributedContext | None = None):
         self.field, self.batcher, self.config = field, batcher, config
+        self.dist = dist or DistributedContext()
+        if config.rays_per_batch < self.dist.world_size:
+            raise ConfigError(f"config field rays_per_batch={config.rays_per_batch} is invalid: "
+                              f"{self.dist.world_size} ranks need at least one ray each")
         self.eval_rays = eval_rays
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
         fused = dict(fused=True) if _fused_adam_ok(field) else {}
@@ -132,6 +144,7 @@ class Trainer:
         self.elapsed = 0.0
         self.history: list[dict] = []
         self.samples_seen = 0
+        self._stop_requested = False  # set by Ctrl-C in a data-parallel run
 
     # -- schedule ------------------------------------------------------------------------
     def _progress_fraction(self) -> float:
@@ -157,15 +170,28 @@ class Trainer:
 
     # -- one step ------------------------------------------------------------------------
     def train_step(self) -> dict:
+        """One optimiser step on `rays_per_batch` rays: {"loss": ..., "psnr": ...} of the whole batch."""
         rays, rgb, mean, sigma = self.batcher.sample(self.config.rays_per_batch, self.generator)
+        noise, whole = self.generator, {}
+        if self.dist.enabled:  # every rank drew the same batch; render this rank's rows with the batch's noise
+            rows = self.dist.share(len(rays))
+            whole = {"n_rays": len(rays), "n_target": int(torch.isfinite(mean).sum())}
+            noise = BatchShare(self.generator, len(rays), rows.start, rows.stop)
+            rays, rgb, mean, sigma = rays[rows], rgb[rows], mean[rows], sigma[rows]
         guide = self.config.loss != "photometric" and self.config.depth_guided_sampling
         fine, coarse = render_rays(
             self.field, rays, self.sampling, mean if guide else None, sigma if guide else None,
-            self.generator, with_coarse=self.config.coarse_loss,
+            noise, with_coarse=self.config.coarse_loss,
         )
         renders = [fine] + ([coarse] if coarse is not None else [])
-        terms = total_loss(self.config.loss, renders, rgb, mean, sigma, self._gains())
+        terms = total_loss(self.config.loss, renders, rgb, mean, sigma, self._gains(), **whole)
         loss = terms["loss"]
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        loss, samples = loss.detach(), fine.t.numel()
+        mse = ((fine.color.detach() - rgb) ** 2).mean()
+        if self.dist.enabled:
+            loss, mse, samples = self._sum_over_ranks(loss, mse * (len(rgb) / whole["n_rays"]), samples)
         if not torch.isfinite(loss):
             raise TrainingError(
                 f"loss became {loss.item()} at step {self.step}; stopped. "
@@ -173,12 +199,34 @@ class Trainer:
                    and self.checkpoint_path.exists() else "No checkpoint was written.")
                 + " Try a lower lr."
             )
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
         self.optimizer.step()
-        self.samples_seen += fine.t.numel()
-        mse = ((fine.color.detach() - rgb) ** 2).mean()
-        return {"loss": float(loss.detach()), "psnr": float(-10 * torch.log10(mse.clamp(min=1e-10)))}
+        self.samples_seen += samples
+        return {"loss": float(loss), "psnr": float(-10 * torch.log10(mse.clamp(min=1e-10)))}
+
+    def _sum_over_ranks(self, loss: torch.Tensor, mse: torch.Tensor, samples: int):
+        """Sum the gradients and this step's (loss, mse, samples) shares over the ranks (in place).
+
+        Each rank's loss is its share of the whole batch's loss, so the sums are the whole
+        batch's gradient, loss and mean squared colour error. A parameter without a gradient
+        counts as zero (every rank must send the same tensors)."""
+        grads = []
+        for p in self.field.parameters():
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+            grads.append(p.grad)
+        stats = torch.stack([loss.double(), mse.double(), torch.tensor(float(samples), dtype=torch.float64,
+                                                                        device=loss.device)])
+        self.dist.sum_([*grads, stats], f"the gradient sum of step {self.step + 1}")
+        return stats[0], stats[1], int(stats[2])
+
+    def _agree(self, elapsed: float) -> tuple[float, bool]:
+        """(rank 0's elapsed seconds, whether Ctrl-C hit any rank): every rank then sets the
+        same learning rate and stops after the same step."""
+        device = next(self.field.parameters()).device
+        t = torch.tensor([elapsed if self.dist.is_main else 0.0, float(self._stop_requested)],
+                         dtype=torch.float64, device=device)
+        self.dist.sum_([t], f"the clock agreement after step {self.step}")
+        return float(t[0]), bool(t[1] > 0)
 
     def evaluate(self) -> dict:
         """PSNR (dB) of the held-out pixel set as {"eval_psnr": ...}; {} without one."""
@@ -200,14 +248,18 @@ class Trainer:
         Returns a summary: steps, seconds, samples_per_s, interrupted, last metrics.
         """
         cfg = self.config
-        bar = tqdm(total=cfg.max_steps, initial=self.step, desc="training", disable=not cfg.progress,
+        main = self.dist.is_main
+        bar = tqdm(total=cfg.max_steps, initial=self.step, desc="training", disable=not (cfg.progress and main),
                    leave=False, dynamic_ncols=True)
         interrupted = False
         stats: dict = {}
         start_samples = self.samples_seen
         start_time = time.perf_counter() - self.elapsed
         run_start = time.perf_counter()
+        restore_ctrl_c = self._catch_ctrl_c()
         try:
+            if self.dist.enabled:  # as DistributedDataParallel does: every rank starts from rank 0's weights
+                self.dist.broadcast_([p.data for p in self.field.parameters()], "the initial parameters' broadcast")
             while not self._done():
                 self._set_lr()
                 try:
@@ -217,18 +269,23 @@ class Trainer:
                     break
                 self.step += 1
                 self.elapsed = time.perf_counter() - start_time
+                if self.dist.enabled:
+                    self.elapsed, interrupted = self._agree(self.elapsed)
                 bar.update(1)
                 if self.step % cfg.eval_every == 0 or self._done():
                     stats.update(self.evaluate())
                     self.history.append({"step": self.step, "seconds": round(self.elapsed, 2), **stats})
                 bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}")
-                if self.checkpoint_dir and self.step % cfg.checkpoint_every == 0:
+                if self.checkpoint_dir and main and self.step % cfg.checkpoint_every == 0:
                     self.save_checkpoint()
+                if interrupted:  # a Ctrl-C on some rank, agreed by all after this step
+                    break
         except KeyboardInterrupt:
             interrupted = True
         finally:
             bar.close()
-        if self.checkpoint_dir:
+            restore_ctrl_c()
+        if self.checkpoint_dir and main:
             self.save_checkpoint()
         seconds = time.perf_counter() - run_start
         return {
@@ -238,6 +295,20 @@ class Trainer:
             "interrupted": interrupted,
             **{k: round(v, 4) for k, v in stats.items()},
         }
+
+    def _catch_ctrl_c(self):
+        """With several ranks, make Ctrl-C only ask to stop (agreed at the end of the step, so
+        no rank is left waiting in a collective). Returns a function that puts the previous
+        SIGINT handler back (nothing changes in a single process or outside the main thread)."""
+        if not self.dist.enabled or threading.current_thread() is not threading.main_thread():
+            return lambda: None
+        self._stop_requested = False
+
+        def request_stop(signum, frame):
+            self._stop_requested = True
+
+        previous = signal.signal(signal.SIGINT, request_stop)
+        return lambda: signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
 
     # -- checkpoints ---------------------------------------------------------------------
     def state_dict(self) -> dict:

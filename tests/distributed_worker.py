@@ -1,0 +1,44 @@
+"""One rank of a data-parallel reconstruct() on the bundled sample, for tests/test_distributed.py.
+
+    python tests/distributed_worker.py OUT_DIR '{"max_steps": 6, ...}'
+
+Run alone it is a single process; run under torchrun (or with RANK, WORLD_SIZE, LOCAL_RANK,
+MASTER_ADDR, MASTER_PORT set) it is one rank. The JSON holds overrides of the "test" preset.
+Poses are the sample's ground truth; checkpoints go to OUT_DIR/checkpoints. Writes
+OUT_DIR/rank{RANK}.pt (rank 0 when alone) with the trained field's state_dict, the training
+stats, and the number of rays every render_rays call of training received (the real
+function, wrapped to count).
+"""
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import open3d_pnerf.training as training
+from open3d_pnerf import ReconstructionConfig, load_sample, reconstruct
+
+
+def main(out: Path, overrides: dict) -> None:
+    rays_per_call = []
+    real_render_rays = training.render_rays
+
+    def counting_render_rays(field, rays, *args, **kwargs):
+        rays_per_call.append(len(rays))
+        return real_render_rays(field, rays, *args, **kwargs)
+
+    training.render_rays = counting_render_rays
+    seq = load_sample()
+    config = ReconstructionConfig.preset("test", **{"progress": False, **overrides})
+    recon = reconstruct(seq, config, poses=seq.gt_poses, covariances=np.zeros((len(seq), 6, 6)),
+                        checkpoint_dir=out / "checkpoints")
+    rank = int(os.environ.get("RANK", 0))
+    torch.save({"field": recon.field.state_dict(), "stats": recon.stats["training"], "rays_per_call": rays_per_call,
+                "exported": recon.mesh is not None}, out / f"rank{rank}.pt")
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]), json.loads(sys.argv[2]) if len(sys.argv) > 2 else {})
