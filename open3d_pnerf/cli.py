@@ -50,7 +50,8 @@ def _config(args):
     overrides = {k: v for k, v in {
         "loss": args.loss, "field": args.field, "device": args.device, "max_steps": args.max_steps,
         "time_budget_s": args.time_budget, "holdout_every": args.holdout_every, "seed": args.seed,
-        "image_scale": args.image_scale, "dist_backend": args.dist_backend, "dist_timeout_s": args.dist_timeout,
+        "image_scale": args.image_scale, "rays_per_batch": args.rays_per_batch, "dist_backend": args.dist_backend,
+        "dist_timeout_s": args.dist_timeout,
     }.items() if v is not None}
     overrides["progress"] = not args.quiet
     return ReconstructionConfig.preset(args.preset, **overrides)
@@ -330,6 +331,8 @@ def _add_training_options(p):
     p.add_argument("--holdout-every", type=int, help="hold out every k-th frame for evaluation")
     p.add_argument("--image-scale", type=float, help="training image scale in (0, 1]")
     p.add_argument("--seed", type=int, help="random seed")
+    p.add_argument("--rays-per-batch", type=int,
+                   help="rays per step (under torchrun: the whole batch, split between the ranks)")
     p.add_argument("--dist-backend", choices=["auto", "gloo", "nccl"],
                    help="under torchrun: torch.distributed backend (default auto: nccl on CUDA, gloo on CPU)")
     p.add_argument("--dist-timeout", type=float, metavar="SECONDS",

@@ -263,7 +263,8 @@ def test_two_ranks_train_the_same_parameters_as_one_process(tmp_path):
 
 
 def test_cli_reconstruct_under_torchrun_matches_one_process(tmp_path, no_launch):
-    args = ["--quiet", "reconstruct", "sample", "--preset", "test", "--gt-poses", "--max-steps", "4"]
+    args = ["--quiet", "reconstruct", "sample", "--preset", "test", "--gt-poses", "--max-steps", "4",
+            "--rays-per-batch", "96"]
     assert cli.main([*args, "--out", str(tmp_path / "one")]) == cli.EXIT_OK
     launch = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-addr", "127.0.0.1",
               "--master-port", str(free_port()), "-m", "open3d_pnerf.cli", *args, "--out", str(tmp_path / "two")]
@@ -273,6 +274,8 @@ def test_cli_reconstruct_under_torchrun_matches_one_process(tmp_path, no_launch)
     assert_same_fields(one, two)
     report = json.loads((tmp_path / "two" / "report.json").read_text())
     assert report["training"]["steps"] == 4
+    config = json.loads((tmp_path / "two" / "run_config.json").read_text())["config"]
+    assert config["rays_per_batch"] == 96 and config["dist_timeout_s"] == 600.0
     assert sorted(p.name for p in (tmp_path / "two").iterdir()) == sorted(p.name for p in (tmp_path / "one").iterdir())
 
 

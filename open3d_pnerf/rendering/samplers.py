@@ -35,7 +35,8 @@ def uniform(r: int, n: int, device, generator: torch.Generator | BatchShare | No
     if isinstance(generator, BatchShare):
         if r != generator.stop - generator.start:
             raise ValueError(f"{r} rays but the batch share has rows [{generator.start}, {generator.stop})")
-        return torch.rand(generator.size, n, device=device, generator=generator.generator)[generator.start:generator.stop]
+        whole = torch.rand(generator.size, n, device=device, generator=generator.generator)
+        return whole[generator.start:generator.stop]
     return torch.rand(r, n, device=device, generator=generator)
 
 
