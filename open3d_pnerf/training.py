@@ -78,9 +78,9 @@ class RayBatcher:
             self.cache.popitem(last=False)
             self._load(self._next_frame())
         ids = list(self.cache)
-        which = torch.randint(len(ids), (n,), generator=generator)
-        pix = torch.randint(self.height * self.width, (n,), generator=generator)
-        frame_ids = torch.tensor(ids)[which]
+        which = torch.randint(len(ids), (n,), generator=generator).to(self.device)  # drawn on the CPU generator
+        pix = torch.randint(self.height * self.width, (n,), generator=generator).to(self.device)
+        frame_ids = torch.tensor(ids, device=self.device)[which]
         rgb = torch.empty(n, 3, device=self.device)
         mean = torch.full((n,), float("nan"), device=self.device)
         sigma = torch.full((n,), float("nan"), device=self.device)
@@ -94,7 +94,7 @@ class RayBatcher:
                 mean[sel], sigma[sel] = m[pix[sel]], s[pix[sel]]
         u = (pix % self.width).float().to(self.device)
         v = (pix // self.width).float().to(self.device)
-        rays = make_rays(self.poses[frame_ids.to(self.device)], self.K, u, v, self.aabb)
+        rays = make_rays(self.poses[frame_ids], self.K, u, v, self.aabb)
         return rays, rgb, mean, sigma
 
     def state(self) -> dict:

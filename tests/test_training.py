@@ -445,3 +445,19 @@ def test_depth_gains_decay_to_their_final_factor_and_colour_stays(scene, monkeyp
     trainer.step = 100
     trainer.train_step()
     assert seen[-1].depth == pytest.approx(0.04)  # the step uses the decayed gains
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_training_on_cuda_draws_the_same_rays_as_on_cpu(scene):
+    """The trainer's generator lives on the CPU: a seeded run on CUDA draws the same rays."""
+    seq, targets, aabb = scene
+    cfg = config(max_steps=3)
+    rays = []
+    for device in ("cpu", "cuda"):
+        batcher = RayBatcher(seq, seq.gt_poses, targets, torch.as_tensor(aabb, device=device), device, cfg.seed)
+        rays.append(batcher.sample(64, torch.Generator().manual_seed(0))[0].origins.cpu())
+    torch.testing.assert_close(rays[0], rays[1])
+    cuda = cfg.replace(device="cuda")
+    field = build_field(cuda, aabb)
+    trainer = Trainer(field, RayBatcher(seq, seq.gt_poses, targets, field.aabb, field.aabb.device, cfg.seed), cuda)
+    assert trainer.train()["steps"] == 3

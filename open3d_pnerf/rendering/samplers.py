@@ -35,9 +35,16 @@ def uniform(r: int, n: int, device, generator: torch.Generator | BatchShare | No
     if isinstance(generator, BatchShare):
         if r != generator.stop - generator.start:
             raise ValueError(f"{r} rays but the batch share has rows [{generator.start}, {generator.stop})")
-        whole = torch.rand(generator.size, n, device=device, generator=generator.generator)
-        return whole[generator.start:generator.stop]
-    return torch.rand(r, n, device=device, generator=generator)
+        return _rand(generator.size, n, device, generator.generator)[generator.start:generator.stop]
+    return _rand(r, n, device, generator)
+
+
+def _rand(r: int, n: int, device, generator: torch.Generator | None) -> torch.Tensor:
+    """torch.rand drawn on the generator's own device (the trainer's is a CPU generator, so a
+    seeded run draws the same numbers on any device), then moved to `device`."""
+    if generator is None:
+        return torch.rand(r, n, device=device)
+    return torch.rand(r, n, device=generator.device, generator=generator).to(device)
 
 
 def bin_edges(t: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
