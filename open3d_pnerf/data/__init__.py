@@ -1,7 +1,8 @@
-"""RGB-D sequences: the sequence model, dataset readers and the bundled sample."""
+"""RGB-D sequences: the sequence model, dataset readers and the bundled sample; LLFF scenes."""
 
 from pathlib import Path
 
+from .llff import LLFFScene, read_llff
 from .loaders import load_sequence, read_log_trajectory, write_log_trajectory, write_tum_trajectory
 from .sequence import Frame, RGBDSequence, check_poses
 
@@ -15,11 +16,13 @@ def load_sample(**kwargs) -> RGBDSequence:
 
 __all__ = [
     "Frame",
+    "LLFFScene",
     "RGBDSequence",
     "SAMPLE_DIR",
     "check_poses",
     "load_sample",
     "load_sequence",
+    "read_llff",
     "read_log_trajectory",
     "write_log_trajectory",
     "write_tum_trajectory",
