@@ -20,7 +20,7 @@ from .config import ReconstructionConfig  # noqa: E402
 from .data import RGBDSequence, load_sample, load_sequence  # noqa: E402
 from .losses import LossGains  # noqa: E402
 from .reconstruction import Reconstruction, reconstruct  # noqa: E402
-from .targets import DepthTargets, SensorNoise, depth_targets  # noqa: E402
+from .targets import DepthTargets, SensorNoise, depth_targets, sparse_depth_targets  # noqa: E402
 from .tracking import Trajectory, absolute_trajectory_error, track  # noqa: E402
 
 __version__ = "0.1.0"
@@ -40,6 +40,7 @@ __all__ = [
     "load_sample",
     "load_sequence",
     "reconstruct",
+    "sparse_depth_targets",
     "track",
     "tsdf_fusion",
 ]
