@@ -51,7 +51,7 @@ def _config(args):
         "loss": args.loss, "field": args.field, "device": args.device, "max_steps": args.max_steps,
         "time_budget_s": args.time_budget, "holdout_every": args.holdout_every, "seed": args.seed,
         "image_scale": args.image_scale, "rays_per_batch": args.rays_per_batch, "dist_backend": args.dist_backend,
-        "dist_timeout_s": args.dist_timeout,
+        "dist_timeout_s": args.dist_timeout, "refine_poses": args.refine_poses or None,
     }.items() if v is not None}
     overrides["progress"] = not args.quiet
     return ReconstructionConfig.preset(args.preset, **overrides)
@@ -333,6 +333,8 @@ def _add_training_options(p):
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--rays-per-batch", type=int,
                    help="rays per step (under torchrun: the whole batch, split between the ranks)")
+    p.add_argument("--refine-poses", action="store_true",
+                   help="optimise the training poses with the field, held by their covariances")
     p.add_argument("--dist-backend", choices=["auto", "gloo", "nccl"],
                    help="under torchrun: torch.distributed backend (default auto: nccl on CUDA, gloo on CPU)")
     p.add_argument("--dist-timeout", type=float, metavar="SECONDS",

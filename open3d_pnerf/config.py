@@ -64,6 +64,14 @@ class ReconstructionConfig:
     """The PNeRF depth gains Kd and Kz decay exponentially over training to this fraction
     of `gains` (1.0 = constant): geometry first, colour refined late. Compare with
     `gains={"density": 0.05, "depth": 0.05}, depth_gain_final_factor=1.0` (the old default)."""
+    refine_poses: bool = False
+    """Optimise a rigid correction of each training pose jointly with the field, held by a
+    Gaussian prior from the pose covariances (open3d_pnerf.pose_refinement): uncertain poses
+    move, certain ones stay (zero covariance: fixed). The Reconstruction's poses are the refined ones."""
+    pose_lr: float = 1e-3
+    """Initial Adam learning rate of the pose corrections (rad or m per step; same decay as lr)."""
+    pose_prior_weight: float = 1e-3
+    """Weight of the pose prior (mean over frames of 0.5 xi^T Sigma^-1 xi) in the loss."""
     coarse_loss: bool = True
     """Add the coarse-render terms (the paper's coarse + fine losses)."""
     grid_resolutions: tuple = (16, 32, 64, 128, 192)
@@ -165,6 +173,8 @@ class ReconstructionConfig:
             ("n_guided", lambda v: count(v, 0), "an int >= 0"),
             ("lr", lambda v: number(v) and v > 0, "a number > 0"),
             ("lr_final_factor", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
+            ("pose_lr", lambda v: number(v) and v > 0, "a number > 0"),
+            ("pose_prior_weight", lambda v: number(v) and v >= 0, "a number >= 0"),
             ("gains", lambda v: isinstance(v, LossGains) and all(number(g) and g >= 0 for g in dataclasses.astuple(v)),
              "LossGains with numbers >= 0"),
             ("depth_gain_final_factor", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
@@ -183,7 +193,8 @@ class ReconstructionConfig:
             ("max_point_std", lambda v: number(v) and v > 0, "a number > 0 (metres)"),
             ("min_opacity", lambda v: number(v) and 0 <= v <= 1, "a number in [0, 1]"),
             *[(name, lambda v: isinstance(v, bool), "True or False")
-              for name in ("depth_guided_sampling", "coarse_loss", "calibrate_depth_sigma", "progress")],
+              for name in ("depth_guided_sampling", "coarse_loss", "calibrate_depth_sigma", "progress",
+                           "refine_poses")],
             ("dist_backend", lambda v: v in BACKENDS, f"one of {BACKENDS}"),
             ("dist_timeout_s", lambda v: number(v) and v > 0, "a number > 0 (seconds)"),
             ("device", lambda v: isinstance(v, str) and v.split(":")[0] in ("cpu", "cuda", "mps"),

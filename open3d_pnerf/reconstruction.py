@@ -25,6 +25,7 @@ from .config import ReconstructionConfig
 from .data.loaders import write_log_trajectory, write_tum_trajectory
 from .data.sequence import RGBDSequence, check_intrinsic, check_poses, check_sequence, scale_intrinsic
 from .distributed import DistributedContext, distributed_session
+from .pose_refinement import PoseCorrections
 from .errors import CheckpointError, ConfigError, InputError
 from .export import (
     backproject,
@@ -369,7 +370,7 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     without calibration or export (no mesh or point cloud). Resuming reads checkpoint_dir
     on every rank: it must be the same checkpoint on every machine.
     """
-    n = len(check_sequence(rgbd_sequence, 2, "reconstruct(): rgbd_sequence"))
+    check_sequence(rgbd_sequence, 2, "reconstruct(): rgbd_sequence")
     config = config or ReconstructionConfig.preset("fast")
     if not isinstance(config, ReconstructionConfig):
         raise InputError(f"config must be a ReconstructionConfig, got {type(config).__name__}")
@@ -432,7 +433,8 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
     device = field.aabb.device
     batcher = RayBatcher(train_seq, poses[train_idx], targets, field.aabb, device, config.seed, config.cache_frames)
     eval_rays = _holdout_rays(rgbd_sequence, hold_idx, poses, config, field.aabb, device) if dist.is_main else None
-    trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir, dist)
+    corrections = PoseCorrections(covariances[train_idx], device) if config.refine_poses else None
+    trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir, dist, corrections)
     if checkpoint is not None:
         trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt", checkpoint)
     try:
@@ -444,6 +446,9 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
             del batcher, trainer, targets
             shutil.rmtree(storage, ignore_errors=True)
     stages.update(1)
+    if corrections is not None:
+        poses = poses.copy()
+        poses[train_idx] = corrections.corrected(poses[train_idx])
     recon = Reconstruction(field, config, poses, covariances, train_seq.intrinsic, aabb, train_idx, hold_idx,
                            rgbd_sequence.timestamps,
                            stats={"training": train_stats, "history": history, "targets": targets_summary,

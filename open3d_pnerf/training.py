@@ -21,6 +21,7 @@ from .data.sequence import RGBDSequence
 from .distributed import DistributedContext
 from .errors import CheckpointError, ConfigError, TrainingError
 from .losses import LossGains, total_loss
+from .pose_refinement import PoseCorrections
 from .rendering import BatchShare, SamplingConfig, make_rays, render_rays
 from .targets import DepthTargets, ray_norms
 
@@ -50,6 +51,7 @@ class RayBatcher:
         self.queue: list[int] = []
         self.cache: OrderedDict[int, tuple] = OrderedDict()
         self.draws = 0
+        self.pose_corrections = None  # a PoseCorrections when poses are refined (set by the Trainer)
         while len(self.cache) < self.capacity:
             self._load(self._next_frame())
 
@@ -94,7 +96,10 @@ class RayBatcher:
                 mean[sel], sigma[sel] = m[pix[sel]], s[pix[sel]]
         u = (pix % self.width).float().to(self.device)
         v = (pix // self.width).float().to(self.device)
-        rays = make_rays(self.poses[frame_ids], self.K, u, v, self.aabb)
+        poses = self.poses[frame_ids]
+        if self.pose_corrections is not None:
+            poses = self.pose_corrections(poses, frame_ids)
+        rays = make_rays(poses, self.K, u, v, self.aabb)
         return rays, rgb, mean, sigma
 
     def state(self) -> dict:
@@ -128,8 +133,10 @@ class Trainer:
     """
 
     def __init__(self, field, batcher: RayBatcher, config: ReconstructionConfig, eval_rays=None,
-                 checkpoint_dir: str | Path | None = None, dist: DistributedContext | None = None):
+                 checkpoint_dir: str | Path | None = None, dist: DistributedContext | None = None,
+                 pose_corrections: PoseCorrections | None = None):
         self.field, self.batcher, self.config = field, batcher, config
+        self.pose_corrections = batcher.pose_corrections = pose_corrections
         self.dist = dist or DistributedContext()
         if config.rays_per_batch < self.dist.world_size:
             raise ConfigError(f"config field rays_per_batch={config.rays_per_batch} is invalid: "
@@ -137,7 +144,10 @@ class Trainer:
         self.eval_rays = eval_rays
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
         fused = dict(fused=True) if _fused_adam_ok(field) else {}
-        self.optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15, **fused)
+        groups = [{"params": list(field.parameters()), "lr": config.lr}]
+        if pose_corrections is not None:
+            groups.append({"params": list(pose_corrections.parameters()), "lr": config.pose_lr})
+        self.optimizer = torch.optim.Adam(groups, eps=1e-15, **fused)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.sampling = sampling_of(config)
         self.step = 0
@@ -154,9 +164,9 @@ class Trainer:
         return min(frac, 1.0)
 
     def _set_lr(self) -> None:
-        lr = self.config.lr * self.config.lr_final_factor ** self._progress_fraction()
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+        decay = self.config.lr_final_factor ** self._progress_fraction()
+        for group, lr in zip(self.optimizer.param_groups, (self.config.lr, self.config.pose_lr)):
+            group["lr"] = lr * decay
 
     def _gains(self) -> LossGains:
         """config.gains with Kd and Kz decayed by depth_gain_final_factor ** progress."""
@@ -186,6 +196,8 @@ class Trainer:
         renders = [fine] + ([coarse] if coarse is not None else [])
         terms = total_loss(self.config.loss, renders, rgb, mean, sigma, self._gains(), **whole)
         loss = terms["loss"]
+        if self.pose_corrections is not None:  # each rank adds its share of the prior
+            loss = loss + self.config.pose_prior_weight * self.pose_corrections.prior() / self.dist.world_size
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         loss, samples = loss.detach(), fine.t.numel()
@@ -210,7 +222,7 @@ class Trainer:
         batch's gradient, loss and mean squared colour error. A parameter without a gradient
         counts as zero (every rank must send the same tensors)."""
         grads = []
-        for p in self.field.parameters():
+        for p in self._trained_parameters():
             if p.grad is None:
                 p.grad = torch.zeros_like(p)
             grads.append(p.grad)
@@ -218,6 +230,11 @@ class Trainer:
                                                                         device=loss.device)])
         self.dist.sum_([*grads, stats], f"the gradient sum of step {self.step + 1}")
         return stats[0], stats[1], int(stats[2])
+
+    def _trained_parameters(self) -> list[torch.Tensor]:
+        """The field's parameters, then the pose corrections' (when poses are refined)."""
+        extra = list(self.pose_corrections.parameters()) if self.pose_corrections is not None else []
+        return list(self.field.parameters()) + extra
 
     def _agree(self, elapsed: float) -> tuple[float, bool]:
         """(rank 0's elapsed seconds, whether Ctrl-C hit any rank): every rank then sets the
@@ -259,7 +276,7 @@ class Trainer:
         restore_ctrl_c = self._catch_ctrl_c()
         try:
             if self.dist.enabled:  # as DistributedDataParallel does: every rank starts from rank 0's weights
-                self.dist.broadcast_([p.data for p in self.field.parameters()], "the initial parameters' broadcast")
+                self.dist.broadcast_([p.data for p in self._trained_parameters()], "the initial parameters' broadcast")
             while not self._done():
                 self._set_lr()
                 try:
@@ -318,6 +335,7 @@ class Trainer:
             "elapsed": self.elapsed,
             "samples_seen": self.samples_seen,
             "field": self.field.state_dict(),
+            **({"poses": self.pose_corrections.state_dict()} if self.pose_corrections is not None else {}),
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "batcher": self.batcher.state(),
@@ -338,6 +356,8 @@ class Trainer:
         state = read_checkpoint(path) if state is None else state
         try:
             self.field.load_state_dict(state["field"])
+            if self.pose_corrections is not None:
+                self.pose_corrections.load_state_dict(state["poses"])
             self.optimizer.load_state_dict(state["optimizer"])
             self.generator.set_state(state["generator"])
             self.batcher.restore(state["batcher"])

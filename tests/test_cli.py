@@ -152,3 +152,9 @@ def test_evaluate_rejects_a_folder_that_is_not_a_reconstruction(tmp_path, capsys
     assert cli.main(["--quiet", "evaluate", str(tmp_path)]) == cli.EXIT_ERROR
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "reconstruction.json" in err[0]
+
+
+def test_refine_poses_option_reaches_the_config():
+    parser = cli.build_parser()
+    assert cli._config(parser.parse_args(["reconstruct", "sample", "--refine-poses"])).refine_poses is True
+    assert cli._config(parser.parse_args(["reconstruct", "sample"])).refine_poses is False

@@ -1,0 +1,79 @@
+"""Pose refinement: the twist parametrisation, the covariance prior, and a short run on the
+synthetic room with noisy poses that moves them toward the truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+import open3d_pnerf as pn
+from open3d_pnerf.config import ReconstructionConfig
+from open3d_pnerf.errors import ConfigError
+from open3d_pnerf.pose_refinement import PoseCorrections
+from open3d_pnerf.synthetic import synthetic_sequence
+
+
+def covs(*stds) -> np.ndarray:
+    """(N, 6, 6) diagonal covariances, one std (rad and m alike) per frame."""
+    return np.stack([np.eye(6) * s**2 for s in stds])
+
+
+def test_zero_twists_leave_poses_unchanged():
+    pc = PoseCorrections(covs(0.01, 0.01))
+    poses = torch.as_tensor(np.stack([np.eye(4), np.eye(4)]), dtype=torch.float32)
+    poses[1, :3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    out = pc(poses, torch.tensor([0, 1]))
+    torch.testing.assert_close(out, poses)
+
+
+def test_a_twist_is_applied_on_the_right_in_the_camera_frame():
+    """T exp(xi): a pure translation twist moves the camera along its own axes."""
+    pc = PoseCorrections(covs(0.1))
+    angle = 0.3
+    with torch.no_grad():
+        pc.twists[0] = torch.tensor([0.0, 0.0, angle, 0.5, 0.0, 0.0])  # rotate about camera z, move along camera x
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("y", 90, degrees=True).as_matrix()  # camera x points to world -z
+    T[:3, 3] = [1.0, 0.0, 0.0]
+    refined = pc.corrected(T[None])[0]
+    expected_rot = T[:3, :3] @ Rotation.from_rotvec([0, 0, angle]).as_matrix()
+    np.testing.assert_allclose(refined[:3, :3], expected_rot, atol=1e-6)
+    # exp of [w, v] with w along z and v along x: the translation is V(w) v
+    w = np.array([0, 0, angle])
+    theta = angle
+    W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    V = np.eye(3) + (1 - np.cos(theta)) / theta**2 * W + (theta - np.sin(theta)) / theta**3 * W @ W
+    np.testing.assert_allclose(refined[:3, 3], T[:3, 3] + T[:3, :3] @ V @ [0.5, 0, 0], atol=1e-6)
+
+
+def test_prior_is_half_the_mahalanobis_energy_and_fixed_frames_stay():
+    pc = PoseCorrections(np.stack([np.diag([1e-4, 1e-4, 1e-4, 4e-4, 4e-4, 4e-4]), np.zeros((6, 6))]))
+    with torch.no_grad():
+        pc.twists[0] = torch.tensor([0.0, 0.01, 0.0, 0.0, 0.0, 0.04])  # 1 sigma and 2 sigma
+        pc.twists[1] = torch.tensor([0.5, 0.0, 0.0, 0.0, 0.0, 0.0])  # a fixed frame: ignored
+    assert pc.prior().item() == pytest.approx(0.5 * (1 + 4), rel=1e-5)  # the mean over the one free frame
+    out = pc(torch.eye(4).expand(2, 4, 4), torch.tensor([0, 1]))
+    torch.testing.assert_close(out[1], torch.eye(4))  # zero covariance: the pose is held fixed
+    pc.prior().backward()
+    assert pc.twists.grad[1].abs().sum() == 0 and pc.twists.grad[0, 5] > 0
+
+
+def test_bad_pose_refinement_settings_raise_config_error():
+    for field, value in (("refine_poses", 1), ("pose_lr", 0.0), ("pose_prior_weight", -1.0)):
+        with pytest.raises(ConfigError, match=field):
+            ReconstructionConfig.preset("test", **{field: value})
+
+
+def test_refinement_moves_noisy_poses_toward_the_truth():
+    """Synthetic room, 2 cm / 0.6 degree pose noise: a short run reduces the trajectory error
+    (after the rigid alignment that removes the gauge freedom shared by field and poses)."""
+    data = synthetic_sequence(12, 160, 120, seed=0, pose_noise=(0.01, 0.02))
+    cfg = ReconstructionConfig.preset("test", max_steps=300, holdout_every=0, progress=False, refine_poses=True,
+                                      calibrate_depth_sigma=False)
+    recon = pn.reconstruct(data.sequence, cfg, poses=data.poses, covariances=data.covariances)
+    gt = data.sequence.gt_poses
+    before = pn.absolute_trajectory_error(data.poses, gt)["rmse"]
+    after = pn.absolute_trajectory_error(recon.poses, gt)["rmse"]
+    assert after < 0.85 * before, (before, after)  # measured here: 31.7 -> 24.2 mm
