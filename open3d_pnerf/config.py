@@ -67,7 +67,8 @@ class ReconstructionConfig:
     refine_poses: bool = False
     """Optimise a rigid correction of each training pose jointly with the field, held by a
     Gaussian prior from the pose covariances (open3d_pnerf.pose_refinement): uncertain poses
-    move, certain ones stay (zero covariance: fixed). The Reconstruction's poses are the refined ones."""
+    move, certain ones stay (zero covariance: fixed). The Reconstruction's poses are the refined
+    ones; held-out frames are moved by the rigid shift that best fits the training frames' refinement."""
     pose_lr: float = 1e-3
     """Initial Adam learning rate of the pose corrections (rad or m per step; same decay as lr)."""
     pose_prior_weight: float = 1e-3

@@ -14,6 +14,8 @@ import numpy as np
 import torch
 from kornia.geometry.liegroup import Se3
 
+from .tracking.metrics import rigid_alignment
+
 # Poses whose covariance has a standard deviation below this (rad or m) in every direction
 # (e.g. ground-truth poses given with zero covariance) are held fixed.
 FIXED_STD = 1e-6
@@ -55,3 +57,15 @@ class PoseCorrections(torch.nn.Module):
             frames = torch.arange(len(poses), device=self.twists.device)
             delta = self(torch.eye(4, device=self.twists.device).expand(len(poses), 4, 4), frames)
         return np.asarray(poses, dtype=np.float64) @ delta.double().cpu().numpy()
+
+
+def follow_refinement(original: np.ndarray, refined: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """Poses `others` (M, 4, 4) moved by the rigid transform that best maps the `original`
+    training poses (N, 4, 4) onto their `refined` versions, so that frames that were not
+    refined (e.g. held-out ones) follow the frame shift that field and poses share. The fit
+    uses each camera's centre and the points 1 m along its x, y and z axes (the centres
+    alone do not fix rotation on a short, straight path)."""
+    def anchors(poses):
+        return np.concatenate([poses[:, :3, 3]] + [poses[:, :3, 3] + poses[:, :3, k] for k in range(3)])
+
+    return rigid_alignment(anchors(original), anchors(refined)) @ others

@@ -25,7 +25,7 @@ from .config import ReconstructionConfig
 from .data.loaders import write_log_trajectory, write_tum_trajectory
 from .data.sequence import RGBDSequence, check_intrinsic, check_poses, check_sequence, scale_intrinsic
 from .distributed import DistributedContext, distributed_session
-from .pose_refinement import PoseCorrections
+from .pose_refinement import PoseCorrections, follow_refinement
 from .errors import CheckpointError, ConfigError, InputError
 from .export import (
     backproject,
@@ -446,9 +446,11 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
             del batcher, trainer, targets
             shutil.rmtree(storage, ignore_errors=True)
     stages.update(1)
-    if corrections is not None:
+    if corrections is not None:  # held-out frames follow the shift the refinement gave the training frames
+        refined = corrections.corrected(poses[train_idx])
         poses = poses.copy()
-        poses[train_idx] = corrections.corrected(poses[train_idx])
+        poses[hold_idx] = follow_refinement(poses[train_idx], refined, poses[hold_idx])
+        poses[train_idx] = refined
     recon = Reconstruction(field, config, poses, covariances, train_seq.intrinsic, aabb, train_idx, hold_idx,
                            rgbd_sequence.timestamps,
                            stats={"training": train_stats, "history": history, "targets": targets_summary,

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 import open3d_pnerf as pn
 from open3d_pnerf.config import ReconstructionConfig
 from open3d_pnerf.errors import ConfigError
-from open3d_pnerf.pose_refinement import PoseCorrections
+from open3d_pnerf.pose_refinement import PoseCorrections, follow_refinement
 from open3d_pnerf.synthetic import synthetic_sequence
 
 
@@ -77,3 +77,17 @@ def test_refinement_moves_noisy_poses_toward_the_truth():
     before = pn.absolute_trajectory_error(data.poses, gt)["rmse"]
     after = pn.absolute_trajectory_error(recon.poses, gt)["rmse"]
     assert after < 0.85 * before, (before, after)  # measured here: 31.7 -> 24.2 mm
+
+
+def test_unrefined_frames_follow_a_rigid_shift_of_the_refined_ones():
+    rng = np.random.default_rng(0)
+    original = np.stack([np.eye(4)] * 6)
+    original[:, :3, :3] = Rotation.random(6, random_state=1).as_matrix()
+    original[:, :3, 3] = rng.normal(size=(6, 3)) * [1.0, 0.01, 0.01]  # a short, nearly straight path
+    shift = np.eye(4)
+    shift[:3, :3] = Rotation.from_rotvec([0.02, -0.01, 0.03]).as_matrix()
+    shift[:3, 3] = [0.05, -0.02, 0.01]
+    other = np.eye(4)
+    other[:3, 3] = [0.3, 0.2, 0.1]
+    moved = follow_refinement(original, shift @ original, other[None])[0]
+    np.testing.assert_allclose(moved, shift @ other, atol=1e-9)
