@@ -23,7 +23,7 @@ suite's wall time includes that. About 23 minutes on this 2-core machine.
     python benchmarks/bench_suite.py [--budget 50] [--jobs 2] [--datasets synthetic,tum,7scenes] [--quick]
 
 Writes benchmarks/results/suite.json, suite.md and suite_*.png (--quick: tiny synthetic
-runs, results/suite_quick.*, a smoke test of the script in ~3 minutes).
+runs, results/suite_quick.*, a smoke test of the script in ~2 minutes).
 """
 
 from __future__ import annotations
