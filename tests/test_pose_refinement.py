@@ -91,3 +91,41 @@ def test_unrefined_frames_follow_a_rigid_shift_of_the_refined_ones():
     other[:3, 3] = [0.3, 0.2, 0.1]
     moved = follow_refinement(original, shift @ original, other[None])[0]
     np.testing.assert_allclose(moved, shift @ other, atol=1e-9)
+
+
+def test_pose_corrections_resume_from_a_checkpoint_like_a_straight_run(tmp_path):
+    """The twists and their Adam state are in the checkpoint: 4 + 4 steps equal 8 steps."""
+    from open3d_pnerf.data import load_sample
+    from open3d_pnerf.reconstruction import build_field, scene_box
+    from open3d_pnerf.targets import depth_targets
+    from open3d_pnerf.training import RayBatcher, Trainer
+
+    seq = load_sample().rescaled(0.5)
+    targets = depth_targets(seq, poses=seq.gt_poses, progress=False)
+    aabb = scene_box(targets, seq.gt_poses, seq.K)
+    cfg = ReconstructionConfig.preset("test", max_steps=8, progress=False, refine_poses=True)
+    noise = covs(*[0.01] * len(seq))
+
+    def trainer(checkpoint_dir=None):
+        torch.manual_seed(0)
+        field = build_field(cfg, aabb)
+        batcher = RayBatcher(seq, seq.gt_poses, targets, field.aabb, "cpu", cfg.seed)
+        return Trainer(field, batcher, cfg, None, checkpoint_dir, pose_corrections=PoseCorrections(noise))
+
+    straight = trainer()
+    straight.train()
+    first = trainer(tmp_path)
+    real_step = first.train_step
+
+    def step_until_ctrl_c():  # Ctrl-C before step 5: the trainer checkpoints after step 4
+        if first.step == 4:
+            raise KeyboardInterrupt
+        return real_step()
+
+    first.train_step = step_until_ctrl_c
+    assert first.train()["interrupted"]
+    second = trainer(tmp_path)
+    second.load_checkpoint(tmp_path / "checkpoint.pt")
+    assert second.step == 4 and second.pose_corrections.twists.abs().sum() > 0
+    second.train()
+    torch.testing.assert_close(second.pose_corrections.twists, straight.pose_corrections.twists, rtol=1e-5, atol=1e-7)
