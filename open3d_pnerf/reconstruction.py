@@ -431,10 +431,11 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
     stages.set_postfix_str("training")
     field = build_field(config, aabb)
     device = field.aabb.device
-    batcher = RayBatcher(train_seq, poses[train_idx], targets, field.aabb, device, config.seed, config.cache_frames)
-    eval_rays = _holdout_rays(rgbd_sequence, hold_idx, poses, config, field.aabb, device) if dist.is_main else None
     corrections = PoseCorrections(covariances[train_idx], device) if config.refine_poses else None
-    trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir, dist, corrections)
+    batcher = RayBatcher(train_seq, poses[train_idx], targets, field.aabb, device, config.seed, config.cache_frames,
+                         pose_corrections=corrections)
+    eval_rays = _holdout_rays(rgbd_sequence, hold_idx, poses, config, field.aabb, device) if dist.is_main else None
+    trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir, dist)
     if checkpoint is not None:
         trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt", checkpoint)
     try:

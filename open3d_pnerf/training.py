@@ -35,10 +35,12 @@ class RayBatcher:
     targets: their DepthTargets (same resolution) or None. At most `cache_frames` frames
     are decoded at a time; with more frames the cache rotates one frame every
     `refresh_every` steps, in a seeded order, so memory stays bounded on long sequences.
+    pose_corrections: a PoseCorrections of the N frames when poses are refined (the Trainer
+    optimises it); rays then start from the corrected poses.
     """
 
     def __init__(self, sequence: RGBDSequence, poses, targets: DepthTargets | None, aabb, device, seed: int,
-                 cache_frames: int = 64, refresh_every: int = 4):
+                 cache_frames: int = 64, refresh_every: int = 4, pose_corrections: PoseCorrections | None = None):
         self.sequence, self.targets, self.device = sequence, targets, device
         self.poses = torch.as_tensor(np.asarray(poses), dtype=torch.float32, device=device)
         self.K = torch.as_tensor(np.array(sequence.K), dtype=torch.float32, device=device)
@@ -51,7 +53,7 @@ class RayBatcher:
         self.queue: list[int] = []
         self.cache: OrderedDict[int, tuple] = OrderedDict()
         self.draws = 0
-        self.pose_corrections = None  # a PoseCorrections when poses are refined (set by the Trainer)
+        self.pose_corrections = pose_corrections
         while len(self.cache) < self.capacity:
             self._load(self._next_frame())
 
@@ -133,10 +135,9 @@ class Trainer:
     """
 
     def __init__(self, field, batcher: RayBatcher, config: ReconstructionConfig, eval_rays=None,
-                 checkpoint_dir: str | Path | None = None, dist: DistributedContext | None = None,
-                 pose_corrections: PoseCorrections | None = None):
+                 checkpoint_dir: str | Path | None = None, dist: DistributedContext | None = None):
         self.field, self.batcher, self.config = field, batcher, config
-        self.pose_corrections = batcher.pose_corrections = pose_corrections
+        self.pose_corrections = batcher.pose_corrections
         self.dist = dist or DistributedContext()
         if config.rays_per_batch < self.dist.world_size:
             raise ConfigError(f"config field rays_per_batch={config.rays_per_batch} is invalid: "
@@ -145,8 +146,8 @@ class Trainer:
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
         fused = dict(fused=True) if _fused_adam_ok(field) else {}
         groups = [{"params": list(field.parameters()), "lr": config.lr}]
-        if pose_corrections is not None:
-            groups.append({"params": list(pose_corrections.parameters()), "lr": config.pose_lr})
+        if self.pose_corrections is not None:
+            groups.append({"params": list(self.pose_corrections.parameters()), "lr": config.pose_lr})
         self.optimizer = torch.optim.Adam(groups, eps=1e-15, **fused)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.sampling = sampling_of(config)

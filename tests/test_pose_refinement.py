@@ -109,8 +109,9 @@ def test_pose_corrections_resume_from_a_checkpoint_like_a_straight_run(tmp_path)
     def trainer(checkpoint_dir=None):
         torch.manual_seed(0)
         field = build_field(cfg, aabb)
-        batcher = RayBatcher(seq, seq.gt_poses, targets, field.aabb, "cpu", cfg.seed)
-        return Trainer(field, batcher, cfg, None, checkpoint_dir, pose_corrections=PoseCorrections(noise))
+        batcher = RayBatcher(seq, seq.gt_poses, targets, field.aabb, "cpu", cfg.seed,
+                             pose_corrections=PoseCorrections(noise))
+        return Trainer(field, batcher, cfg, None, checkpoint_dir)
 
     straight = trainer()
     straight.train()
