@@ -128,7 +128,7 @@ def tsdf_fusion(
     :class:`TSDFVolume` instead (for ``.point_cloud()`` and ``.render(pose, K, w, h)``).
     weight_threshold: surfaces keep voxels observed more often than this (see TSDFVolume).
     """
-    poses = check_poses(poses, len(check_sequence(sequence, what="tsdf_fusion(): sequence")), "poses")
+    poses = check_poses(poses, len(check_sequence(sequence, what="tsdf_fusion(): sequence", needs_depth=True)), "poses")
     volume = TSDFVolume(voxel_size, sdf_trunc, depth_max, device=device, weight_threshold=weight_threshold)
     K = sequence.K
     K_color = np.asarray(sequence.color_intrinsic.intrinsic_matrix)

@@ -63,6 +63,8 @@ def _poses_for(seq, args, out: Path, reuse: bool = False, write_cache: bool = Tr
     from .errors import InputError
     from .tracking import track
 
+    if not seq.has_depth:  # an image-only sequence brings its SfM poses
+        return seq.poses, seq.covariances
     if args.gt_poses:
         if seq.gt_poses is None:
             raise InputError(f"--gt-poses: {args.data} has no ground-truth poses")
@@ -170,12 +172,16 @@ def _report_md(report: dict, recon, out: Path) -> str:
 
 
 def _scores_table(scores: dict) -> list[str]:
-    """Markdown lines: a table of heldout_scores() output and the model's depth calibration."""
+    """Markdown lines: a table of heldout_scores() output and the model's depth calibration
+    (image metrics only for sequences without depth)."""
     lines = ["| method | PSNR (dB) | PSNR on TSDF hits | SSIM | depth L1 (mm) |", "| --- | --- | --- | --- | --- |"]
     for name, s in scores.items():
         hits = f"{s['psnr_hits']:.2f}" if "psnr_hits" in s else "-"
-        lines.append(f"| {name} | {s['psnr']:.2f} | {hits} | {s['ssim']:.3f} | {1000 * s['depth_l1']:.1f} |")
+        depth = f"{1000 * s['depth_l1']:.1f}" if "depth_l1" in s else "-"
+        lines.append(f"| {name} | {s['psnr']:.2f} | {hits} | {s['ssim']:.3f} | {depth} |")
     model = scores["model"]
+    if "within_1" not in model:
+        return lines + ["", "No depth images: depth and calibration are not scored."]
     return lines + ["", f"Depth calibration (model): {model['within_1']:.2f} / {model['within_2']:.2f} / "
                     f"{model['within_3']:.2f} of held-out errors within 1/2/3 predicted sigmas."]
 

@@ -29,12 +29,12 @@ class Comparison:
     calibration means; accuracy/completeness/chamfer/F-score when a reference was given;
     lengths in metres). figures: one matplotlib Figure per shown held-out frame (rows:
     input, model, TSDF; columns: colour, depth, |depth error|, depth sigma); frames: their
-    frame indices.
+    frame indices. An image-only sequence has no TSDF: tsdf is None, table has "model" only.
     """
 
     table: dict
     reconstruction: Reconstruction
-    tsdf: TSDFVolume
+    tsdf: TSDFVolume | None
     figures: list
     frames: list
 
@@ -63,8 +63,8 @@ class Comparison:
         atomic_write(d / "comparison.md", lambda p: Path(p).write_text(self.markdown()))
         for frame, fig in zip(self.frames, self.figures):
             atomic_write(d / f"compare_frame_{frame:04d}.png", lambda p, f=fig: f.savefig(p, dpi=80, format="png"))
-        mesh = self.tsdf.mesh()
-        if not mesh.is_empty():
+        mesh = self.tsdf.mesh() if self.tsdf is not None else None
+        if mesh is not None and not mesh.is_empty():
             write_mesh_ply(d / "tsdf_mesh.ply", mesh)
         return d
 
@@ -83,7 +83,9 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
     (m), truncation 4 voxels. weight_threshold: the TSDF keeps voxels seen by more training
     frames than this; None = min(3, training frames / 5) (3 is Open3D's default for dense
     video; with a few sparse views most surfaces are seen by fewer frames and would vanish).
-    Both are rendered at the held-out poses at the training resolution.
+    Both are rendered at the held-out poses at the training resolution. An image-only
+    sequence (no depth images, e.g. an LLFF folder) has no TSDF to fuse: the model is
+    scored alone (colour metrics).
     """
     if not isinstance(sequence, RGBDSequence):
         raise InputError(f"sequence must be an RGBDSequence, got {type(sequence).__name__}")
@@ -98,17 +100,21 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
     if len(recon.holdout_indices) == 0 and reference is None:
         raise InputError("nothing to compare on: the reconstruction has no held-out frames "
                          "(set config.holdout_every > 0) and no reference surface was given")
-    train = sequence.select(recon.train_indices)
-    train = train.rescaled(train.image_scale * recon.config.image_scale)
-    if weight_threshold is None:
-        weight_threshold = min(3.0, len(recon.train_indices) / 5)
-    depth_max = float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))  # nothing in the box is farther
-    tsdf = tsdf_fusion(train, recon.poses[recon.train_indices], voxel_size=voxel_size, sdf_trunc=4 * voxel_size,
-                       depth_max=depth_max, return_volume=True, progress=progress, weight_threshold=weight_threshold)
+    tsdf = None
+    if sequence.has_depth:
+        train = sequence.select(recon.train_indices)
+        train = train.rescaled(train.image_scale * recon.config.image_scale)
+        if weight_threshold is None:
+            weight_threshold = min(3.0, len(recon.train_indices) / 5)
+        depth_max = float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))  # nothing in the box is farther
+        tsdf = tsdf_fusion(train, recon.poses[recon.train_indices], voxel_size=voxel_size, sdf_trunc=4 * voxel_size,
+                           depth_max=depth_max, return_volume=True, progress=progress,
+                           weight_threshold=weight_threshold)
     renders = list(heldout_renders(recon, sequence, tsdf)) if len(recon.holdout_indices) else []
     table = score_renders(renders) if renders else {"model": {}, "tsdf": {}}
     if reference is not None:
-        for name, mesh in (("model", recon.mesh), ("tsdf", tsdf.mesh())):
+        meshes = [("model", recon.mesh)] + ([("tsdf", tsdf.mesh())] if tsdf is not None else [])
+        for name, mesh in meshes:
             if mesh is None or mesh.is_empty():
                 warnings.warn(f"{name} has no mesh: geometry metrics skipped")
                 continue

@@ -21,9 +21,11 @@ def psnr(pred: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None) -
 
 
 def ssim(pred: np.ndarray, target: np.ndarray, window: int = 11) -> float:
-    """Mean SSIM (kornia) of images in [0, 1] (H, W, 3)."""
+    """Mean SSIM (kornia, Gaussian `window`) of images in [0, 1] (H, W, 3); images smaller than
+    the window use the largest odd window that fits."""
     from kornia.metrics import ssim as kornia_ssim
 
+    window = min(window, (min(np.shape(pred)[:2]) - 1) | 1)
     to = lambda a: torch.as_tensor(np.asarray(a, np.float32)).permute(2, 0, 1)[None]  # noqa: E731
     return float(kornia_ssim(to(pred), to(target), window).mean())
 
@@ -127,15 +129,16 @@ def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = Non
 def score_renders(renders) -> dict:
     """{"model": {...}, "tsdf": {...}}: means over frames of image, depth and calibration
     metrics (items as yielded by :func:`heldout_renders`). TSDF colour is scored over all
-    pixels ("psnr") and over the pixels its ray cast hits ("psnr_hits")."""
+    pixels ("psnr") and over the pixels its ray cast hits ("psnr_hits"). Frames without
+    sensor depth (image-only sequences) have image metrics only."""
     rows: dict[str, list[dict]] = {"model": [], "tsdf": []}
     for r in renders:
         color, depth, out, t = r["color"], r["depth"], r["model"], r["tsdf"]
-        rows["model"].append({
-            "psnr": psnr(out["color"], color), "ssim": ssim(out["color"], color),
-            **{f"depth_{m}": v for m, v in depth_errors(out["depth"], depth).items()},
-            **depth_calibration(out["depth"], out["depth_std"], depth),
-        })
+        row = {"psnr": psnr(out["color"], color), "ssim": ssim(out["color"], color)}
+        if depth.any():
+            row.update({f"depth_{m}": v for m, v in depth_errors(out["depth"], depth).items()})
+            row.update(depth_calibration(out["depth"], out["depth_std"], depth))
+        rows["model"].append(row)
         if t is not None:
             rows["tsdf"].append({
                 "psnr": psnr(t["color"], color), "psnr_hits": psnr(t["color"], color, t["hit"]),
@@ -152,4 +155,6 @@ def heldout_scores(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = None
 
 
 def _mean_rows(rows: list[dict]) -> dict:
-    return {k: round(float(np.mean([r[k] for r in rows])), 5) for k in rows[0]}
+    """Per metric, the mean over the rows that have it."""
+    keys = dict.fromkeys(k for r in rows for k in r)
+    return {k: round(float(np.mean([r[k] for r in rows if k in r])), 5) for k in keys}

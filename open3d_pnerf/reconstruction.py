@@ -177,6 +177,7 @@ class Reconstruction:
         read at the training resolution and `pixels` random pixels of each with sensor depth
         and opacity > 0.5 are rendered. Sets and returns depth_sigma_scale (1.0 if no pixel).
         """
+        check_sequence(sequence, len(self.poses), "calibrate_depth_sigma(): sequence", needs_depth=True)
         train = self.train_indices[evenly_spaced(len(self.train_indices), frames)]
         seq = sequence.select(train)
         seq = seq.rescaled(seq.image_scale * self.config.image_scale)
@@ -359,7 +360,9 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     """Reconstruct a probabilistic scene model from an RGB-D sequence.
 
     Stages: tracking (skipped when `poses` (N, 4, 4) camera-to-world are given), per-pixel
-    depth targets, training the field, exporting mesh and point cloud.
+    depth targets, training the field, exporting mesh and point cloud. An image-only
+    sequence (an LLFF folder: ``has_depth`` False) brings its SfM poses and covariances and
+    trains on its sparse points' targets; its depth spread is not calibrated (no sensor depth).
     config: a ReconstructionConfig (default: the "fast" preset). checkpoint_dir: where
     training checkpoints go; resume=True continues from its checkpoint.pt.
 
@@ -388,6 +391,8 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
     if dist.enabled:
         config = config.replace(device=dist.device(config.device))
     train_idx, hold_idx = split_frames(n, config.holdout_every, config.train_views)
+    if poses is None and not rgbd_sequence.has_depth:
+        poses, covariances = rgbd_sequence.poses, rgbd_sequence.covariances
     if poses is not None:
         poses, covariances = check_poses(poses, n, "poses"), check_covariances(covariances, n)
     checkpoint = None
@@ -462,7 +467,7 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
 
     stages.set_postfix_str("export")
     t2 = time.perf_counter()
-    if config.calibrate_depth_sigma:
+    if config.calibrate_depth_sigma and rgbd_sequence.has_depth:
         recon.calibrate_depth_sigma(rgbd_sequence)
     recon.export_geometry(progress=config.progress)
     timings["export_s"] = round(time.perf_counter() - t2, 2)
@@ -484,7 +489,7 @@ def _holdout_rays(sequence, hold_idx, poses, config, aabb, device, n_rays: int =
     K = torch.as_tensor(seq.K, dtype=torch.float32, device=device)
     rays, rgbs = [], []
     for k, i in enumerate(hold_idx):
-        pix = rng.choice(h * w, per, replace=False)
+        pix = rng.choice(h * w, min(per, h * w), replace=False)
         color = seq.color_on_depth_grid(seq[k].color).reshape(-1, 3)[pix] / 255.0
         u, v = torch.as_tensor(pix % w, dtype=torch.float32), torch.as_tensor(pix // w, dtype=torch.float32)
         pose = torch.as_tensor(poses[i], dtype=torch.float32, device=device)

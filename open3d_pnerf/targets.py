@@ -185,14 +185,24 @@ def depth_targets(
     [rotation, translation], right perturbation; zeros if omitted). neighbors: frames on
     each side reprojected into a frame. consistency_sigmas: outlier gate. storage_dir: keep
     the (N, H, W) arrays in .npy memory maps there instead of RAM (long sequences).
+
+    An image-only sequence (``sequence.has_depth`` False, e.g. an LLFF folder) gets the
+    targets of its sparse SfM points instead (:func:`sparse_depth_targets`); its own poses
+    and covariances are used unless others are given.
     """
     n = len(check_sequence(sequence, what="depth_targets(): sequence"))
     if trajectory is not None:
         poses, covariances = trajectory.poses, trajectory.covariances
+    if poses is None and not sequence.has_depth:
+        poses, covariances = sequence.poses, sequence.covariances
     if poses is None:
         raise InputError("depth_targets() needs a trajectory or poses=(N, 4, 4) camera-to-world")
     poses = check_poses(poses, n, "poses")
     covs = check_covariances(covariances, n)
+    if not sequence.has_depth:
+        pts = sequence.points
+        return sparse_depth_targets(poses, sequence.K, sequence.image_size, pts.xyz, pts.error, pts.observed,
+                                    covariances=covs, storage_dir=storage_dir)
     if neighbors < 0 or consistency_sigmas <= 0 or fill_min_views < 1:
         raise InputError("need neighbors >= 0, consistency_sigmas > 0 and fill_min_views >= 1")
 
@@ -281,6 +291,7 @@ def sparse_depth_targets(
     covariances: np.ndarray | None = None,
     min_angle_deg: float = 1.0,
     min_error: float = 0.01,
+    storage_dir: str | Path | None = None,
 ) -> DepthTargets:
     """Per-pixel Gaussian depth targets (z-depth mean and sigma) from sparse SfM points.
 
@@ -306,7 +317,8 @@ def sparse_depth_targets(
         DepthTargets has no weight, so it is folded into sigma: sigma / sqrt(w_k) weights
         the squared residual of a Gaussian term by w_k.
     Points seen under theta < min_angle_deg give no target. support: the point's track
-    length (capped at 255); filled: False (the frame observes the point itself).
+    length (capped at 255); filled: False (the frame observes the point itself). storage_dir:
+    as :func:`depth_targets`.
     """
     poses = check_poses(poses, what="sparse_depth_targets(): poses")
     n = len(poses)
@@ -329,7 +341,7 @@ def sparse_depth_targets(
     track = np.minimum(observed.sum(1), 255).astype(np.uint8)
     centres = poses[:, :3, 3]
     rays = _unit_rays(K, h, w).reshape(-1, 3)
-    out = _allocate(n, h, w, None)
+    out = _allocate(n, h, w, storage_dir)
     for i in range(n):
         idx = np.flatnonzero(observed[:, i])
         rot = poses[i, :3, :3]

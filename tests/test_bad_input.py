@@ -219,7 +219,7 @@ CASES = [
          ("scan.txt", "must be a folder")),
     Case("path-of-wrong-type", lambda t: 42, load, InputError, ("path", "int")),
     Case("unknown-layout", lambda t: (t / "mystery" / "images").mkdir(parents=True) or t / "mystery", load,
-         DatasetError, ("mystery", "not a known RGB-D layout", "rgb.txt")),
+         DatasetError, ("mystery", "not a known layout", "rgb.txt")),
     Case("tum-listed-colour-missing", edit(tum, lambda r: (r / "rgb" / "1.500000.png").unlink()), load,
          DatasetError, ("1.500000.png", "rgb.txt", "do not exist")),
     Case("tum-listed-depth-missing", edit(tum, lambda r: (r / "depth" / "2.004000.png").unlink()), load,

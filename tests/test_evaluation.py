@@ -58,6 +58,9 @@ def test_ssim_of_identical_constant_and_noisy_images():
     assert ssim(a, b) == pytest.approx((2 * 0.3 + 1e-4) / (0.61 + 1e-4), abs=2e-4)
     noisy = [ssim(np.clip(image + rng.normal(0, s, image.shape), 0, 1), image) for s in (0.02, 0.1, 0.3)]
     assert 1 > noisy[0] > noisy[1] > noisy[2]
+    # images smaller than the 11-pixel window (tiny test scenes) use a window that fits
+    assert ssim(image[:4, :3], image[:4, :3]) == pytest.approx(1.0, abs=1e-6)
+    assert ssim(a[:3, :5], b[:3, :5]) == pytest.approx((2 * 0.3 + 1e-4) / (0.61 + 1e-4), abs=2e-4)
 
 
 # -- depth metrics -----------------------------------------------------------------------------------

@@ -1,8 +1,8 @@
-"""RGB-D sequences: the sequence model, dataset readers and the bundled sample; LLFF scenes."""
+"""Sequences: the RGB-D sequence model, dataset readers, the bundled sample, LLFF image scenes."""
 
 from pathlib import Path
 
-from .llff import LLFFScene, read_llff
+from .llff import ImageSequence, SparsePoints, read_llff, sfm_pose_covariances
 from .loaders import load_sequence, read_log_trajectory, write_log_trajectory, write_tum_trajectory
 from .sequence import Frame, RGBDSequence, check_poses
 
@@ -16,14 +16,16 @@ def load_sample(**kwargs) -> RGBDSequence:
 
 __all__ = [
     "Frame",
-    "LLFFScene",
+    "ImageSequence",
     "RGBDSequence",
     "SAMPLE_DIR",
+    "SparsePoints",
     "check_poses",
     "load_sample",
     "load_sequence",
     "read_llff",
     "read_log_trajectory",
+    "sfm_pose_covariances",
     "write_log_trajectory",
     "write_tum_trajectory",
 ]

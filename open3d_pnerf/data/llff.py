@@ -1,4 +1,4 @@
-"""Reader of LLFF-style scenes (NeRF's ``nerf_llff_data``): images, poses, bounds, SfM points.
+"""LLFF-style scenes (NeRF's ``nerf_llff_data``) as image-only sequences with SfM poses and points.
 
 Layout: ``poses_bounds.npy`` (N, 17), ``images_<factor>/`` (N images, sorted by name),
 optional COLMAP model ``sparse/0/{cameras.bin, images.bin, points3D.bin}``.
@@ -6,8 +6,8 @@ optional COLMAP model ``sparse/0/{cameras.bin, images.bin, points3D.bin}``.
 Each poses_bounds row is a 3x5 matrix [R | t | (H, W, f)] flattened row by row, then the
 near and far depth bounds. R's columns are the camera's down, right and backward axes in
 the world (LLFF's convention); H, W, f are the full-resolution image size and focal length
-(pixels). The world frame is COLMAP's, so points3D.bin needs no transform. Units are those
-of the COLMAP reconstruction (arbitrary scale, not metres).
+(pixels). The world frame is COLMAP's, so points3D.bin needs no transform. COLMAP's units
+are arbitrary: :func:`read_llff` rescales them (see its `scale`).
 
 Rows follow the images sorted by name (LLFF writes them so). Matching COLMAP image ids to
 rows: with images.bin the ids map to the rank of their image name; without it (LLFF
@@ -19,85 +19,146 @@ images 1..N in name order, as its feature extractor does for a folder and as LLF
 from __future__ import annotations
 
 import dataclasses
+import re
 import warnings
 from pathlib import Path
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 from ..errors import DatasetError, InputError
 from .colmap import read_cameras_binary, read_images_binary, read_points3d_binary
 from .loaders import _image_files, pinhole
-from .sequence import check_poses, read_image
+from .sequence import RGBDSequence, check_poses, read_image
 
 POSES_FILE = "poses_bounds.npy"
+NEAR_SCALE = 0.75  # read_llff's default scale puts the nearest bound at 1 / 0.75 units, as NeRF's loader
 
 
 @dataclasses.dataclass
-class LLFFScene:
-    """An LLFF scene at one image factor; images load lazily (:meth:`image`).
+class SparsePoints:
+    """SfM points of an image sequence.
 
-    intrinsic: pinhole ``o3d.camera.PinholeCameraIntrinsic`` of the loaded images (pixel
-    centres at integer coordinates, lens distortion ignored as in LLFF/NeRF). poses: (N, 4, 4)
-    float64 camera-to-world, OpenCV axes (x right, y down, z forward). bounds: (N, 2) near/far
-    z-depth. xyz: (M, 3) SfM points (world); point_error: (M,) their mean reprojection error in
-    pixels of the loaded images; observed: (M, N) bool, point k is in image i's track.
+    xyz: (M, 3) float64 world points (scene units); error: (M,) mean reprojection error in
+    pixels of the sequence's images; observed: (M, N) bool, point k is in frame i's track.
     """
 
-    image_paths: list[Path]
-    intrinsic: o3d.camera.PinholeCameraIntrinsic
-    poses: np.ndarray
-    bounds: np.ndarray
     xyz: np.ndarray
-    point_error: np.ndarray
+    error: np.ndarray
     observed: np.ndarray
-    name: str
 
     def __len__(self) -> int:
-        return len(self.image_paths)
-
-    @property
-    def K(self) -> np.ndarray:
-        """(3, 3) float64 intrinsic matrix."""
-        return np.array(self.intrinsic.intrinsic_matrix, dtype=np.float64)
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        """(height, width) of the loaded images."""
-        return self.intrinsic.height, self.intrinsic.width
+        return len(self.xyz)
 
     @property
     def track_length(self) -> np.ndarray:
-        """(M,) number of images observing each point."""
+        """(M,) number of the sequence's frames observing each point."""
         return self.observed.sum(1)
 
-    def image(self, index: int) -> np.ndarray:
-        """Image `index` as uint8 (H, W, 3) RGB."""
-        return cv2.cvtColor(read_image(self.image_paths[index], cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+class ImageSequence(RGBDSequence):
+    """Colour images with SfM camera poses and sparse points, and no depth images.
+
+    A sequence like any other (lazy frames, select, rescaled), whose frames' depth is all
+    zero (invalid). poses: (N, 4, 4) camera-to-world, OpenCV axes, from SfM; covariances:
+    (N, 6, 6) of those poses ([rotation, translation], right perturbation; see
+    :func:`sfm_pose_covariances`); points: :class:`SparsePoints` (error in pixels at the
+    current image scale); bounds: (N, 2) near/far z-depth; scale: scene units per SfM unit.
+    ``reconstruct()`` uses the poses instead of tracking and the points as depth targets
+    (:func:`~open3d_pnerf.targets.sparse_depth_targets`).
+    """
+
+    has_depth = False
+
+    def __init__(self, image_paths, intrinsic, poses, covariances, points: SparsePoints, bounds,
+                 scale: float = 1.0, name: str = "images", image_scale: float = 1.0):
+        self.image_paths = [Path(p) for p in image_paths]
+        n = len(self.image_paths)
+        readers = [_color_reader(p, intrinsic.height, intrinsic.width) for p in self.image_paths]
+        super().__init__(readers, intrinsic, name=name, image_scale=image_scale)
+        self.poses = check_poses(poses, n, f"{name}: poses")
+        self.covariances = np.asarray(covariances, np.float64)
+        self.bounds = np.asarray(bounds, np.float64)
+        if self.covariances.shape != (n, 6, 6) or self.bounds.shape != (n, 2):
+            raise InputError(f"{name}: need (N, 6, 6) covariances and (N, 2) bounds for {n} images, got "
+                             f"{self.covariances.shape} and {self.bounds.shape}")
+        if points.observed.shape != (len(points), n):
+            raise InputError(f"{name}: points.observed must be (M, {n}), got {points.observed.shape}")
+        self._points = points  # error in pixels of the files' images
+        self.scale = float(scale)
+
+    @property
+    def points(self) -> SparsePoints:
+        """The SfM points, reprojection error in pixels at the sequence's image scale."""
+        sx = self.intrinsic.width / self._base_intrinsic.width
+        return dataclasses.replace(self._points, error=self._points.error * sx)
+
+    def __repr__(self) -> str:
+        h, w = self.image_size
+        return f"ImageSequence({self.name!r}, {len(self)} images, {w}x{h}, {len(self._points)} SfM points)"
+
+    def _derive(self, idx: np.ndarray, image_scale: float) -> "ImageSequence":
+        points = dataclasses.replace(self._points, observed=self._points.observed[:, idx])
+        return ImageSequence([self.image_paths[i] for i in idx], self._base_intrinsic, self.poses[idx],
+                             self.covariances[idx], points, self.bounds[idx], self.scale, self.name, image_scale)
 
 
-def read_llff(path, factor: int = 8) -> LLFFScene:
-    """Read an LLFF scene folder with the images of ``images_<factor>/``.
+def _color_reader(path: Path, height: int, width: int):
+    """Reader of an image file as (colour uint8 RGB, all-zero depth)."""
 
-    The focal length of poses_bounds.npy is scaled by the loaded/full image size; the
-    principal point is cameras.bin's when present, else the image centre. Without
-    ``sparse/0/points3D.bin`` the scene has no points (a warning says so).
+    def read():
+        color = cv2.cvtColor(read_image(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        return color, np.zeros((height, width), np.float32)
+
+    read.source = str(path)
+    return read
+
+
+def is_llff_folder(path: Path) -> bool:
+    return (Path(path) / POSES_FILE).is_file()
+
+
+def image_factors(path: Path) -> list[int]:
+    """The N of the folder's ``images_N/`` subfolders, ascending."""
+    found = (re.fullmatch(r"images_(\d+)", p.name) for p in Path(path).iterdir() if p.is_dir())
+    return sorted(int(m.group(1)) for m in found if m and int(m.group(1)) > 0)
+
+
+def read_llff(path, factor: int | None = None, scale: float | None = None, image_scale: float = 1.0) -> ImageSequence:
+    """Read an LLFF scene folder as an :class:`ImageSequence` of the images of ``images_<factor>/``.
+
+    factor: the image folder (default: the largest N with an ``images_N/``, i.e. the smallest
+    images). The focal length of poses_bounds.npy is scaled by the loaded/full image size; the
+    principal point is cameras.bin's when present, else the image centre. scale: scene units
+    per COLMAP unit (poses, points, bounds); default 1 / (0.75 * nearest bound) as NeRF's
+    loader, which makes a room-sized scene span a few units. Pose covariances come from the
+    points (:func:`sfm_pose_covariances`). Without ``sparse/0/points3D.bin`` the scene has no
+    points (a warning says so) and unit covariances.
     """
     path = Path(path)
     if not path.is_dir():
         raise DatasetError(f"LLFF scene folder not found: {path}")
-    if not isinstance(factor, int) or factor < 1:
-        raise InputError(f"factor must be an integer >= 1 (images_<factor>/), got {factor!r}")
     poses_file = path / POSES_FILE
     if not poses_file.is_file():
         raise DatasetError(f"{path}: {POSES_FILE} not found; not an LLFF scene")
+    if factor is None:
+        factors = image_factors(path)
+        if not factors:
+            raise DatasetError(f"{path}: no images_<N>/ folder (LLFF's downscaled images) found")
+        factor = factors[-1]
+    if not isinstance(factor, int) or factor < 1:
+        raise InputError(f"factor must be an integer >= 1 (images_<factor>/), got {factor!r}")
     try:
         rows = np.load(poses_file, allow_pickle=False)
     except (OSError, ValueError) as exc:
         raise DatasetError(f"{poses_file}: not a readable .npy array ({exc})") from None
-    if rows.ndim != 2 or rows.shape[1] != 17 or not np.isfinite(rows).all():
-        raise DatasetError(f"{poses_file}: expected finite (N, 17) rows [3x5 pose|hwf, near, far], got {rows.shape}")
+    if rows.ndim != 2 or rows.shape[1] != 17 or not np.isfinite(rows).all() or not (rows[:, 15:] > 0).all():
+        raise DatasetError(f"{poses_file}: expected finite (N, 17) rows [3x5 pose|hwf, near > 0, far > 0], "
+                           f"got {rows.shape}")
+    if scale is None:
+        scale = 1.0 / (NEAR_SCALE * rows[:, 15].min())
+    if not scale > 0:
+        raise InputError(f"scale must be > 0 (scene units per COLMAP unit), got {scale!r}")
     mats = rows[:, :15].reshape(-1, 3, 5)
     height_full, width_full, focal_full = mats[0, :, 4]
 
@@ -118,7 +179,7 @@ def read_llff(path, factor: int = 8) -> LLFFScene:
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     down, right, backward = mats[:, :, 0], mats[:, :, 1], mats[:, :, 2]
     poses[:, :3, :3] = np.stack([right, down, -backward], axis=2)
-    poses[:, :3, 3] = mats[:, :, 3]
+    poses[:, :3, 3] = mats[:, :, 3] * scale
     poses = check_poses(poses, what=str(poses_file))
 
     model = path / "sparse" / "0"
@@ -136,7 +197,14 @@ def read_llff(path, factor: int = 8) -> LLFFScene:
         cx, cy = camera.principal_point
     intrinsic = pinhole(width, height, focal_full * sx, focal_full * sy, cx * sx - 0.5, cy * sy - 0.5)
     xyz, error, observed = _sparse_points(model, image_paths, len(rows))
-    return LLFFScene(image_paths, intrinsic, poses, rows[:, 15:17].copy(), xyz, error * sx, observed, path.name)
+    points = SparsePoints(xyz * scale, error * sx, observed)
+    K = np.asarray(intrinsic.intrinsic_matrix)
+    if len(points):
+        covariances = sfm_pose_covariances(poses, K, points.xyz, points.error, observed)
+    else:
+        covariances = np.tile(np.eye(6), (len(rows), 1, 1))
+    return ImageSequence(image_paths, intrinsic, poses, covariances, points, rows[:, 15:17] * scale, scale,
+                         path.name, image_scale)
 
 
 def _sparse_points(model: Path, image_paths: list[Path], n: int):
@@ -159,3 +227,44 @@ def _sparse_points(model: Path, image_paths: list[Path], n: int):
     except InputError as exc:
         raise DatasetError(f"{points_file}: {exc}") from None
     return points.xyz, points.error, observed
+
+
+def sfm_pose_covariances(poses: np.ndarray, K: np.ndarray, xyz: np.ndarray, error: np.ndarray,
+                         observed: np.ndarray, min_error: float = 0.01) -> np.ndarray:
+    """(N, 6, 6) covariance of each camera pose from the SfM points it observes.
+
+    poses: (N, 4, 4) camera-to-world; K: (3, 3); xyz: (M, 3); error: (M,) reprojection error
+    (pixels of K's images, floored at `min_error`), taken as the standard deviation of each
+    observation; observed: (M, N) bool. With the points held fixed, the Gauss-Newton
+    information of frame i is sum_k J_k^T J_k / e_k^2, J_k (2, 6) the derivative of point k's
+    projection with respect to a right perturbation [rotation, translation] of the pose (as
+    the tracker's covariances); the covariance is its inverse. Holding the points fixed
+    ignores their own uncertainty, so these are lower bounds. A frame seeing fewer than 3
+    points gets an effectively unbounded covariance (1e6 on its diagonal) and a warning.
+    """
+    poses = check_poses(poses, what="sfm_pose_covariances(): poses")
+    fx, fy = K[0, 0], K[1, 1]
+    var = np.maximum(np.asarray(error, np.float64), min_error) ** 2
+    out = np.empty((len(poses), 6, 6))
+    for i, pose in enumerate(poses):
+        idx = np.flatnonzero(observed[:, i])
+        q = (xyz[idx] - pose[:3, 3]) @ pose[:3, :3]  # camera frame
+        front = q[:, 2] > 1e-9
+        idx, q = idx[front], q[front]
+        if len(idx) < 3:
+            warnings.warn(f"frame {i} observes {len(idx)} SfM point(s): its pose covariance is unbounded")
+            out[i] = np.eye(6) * 1e6
+            continue
+        x, y, z = q.T
+        proj = np.zeros((len(q), 2, 3))  # d(u, v) / dq
+        proj[:, 0, 0], proj[:, 0, 2] = fx / z, -fx * x / z**2
+        proj[:, 1, 1], proj[:, 1, 2] = fy / z, -fy * y / z**2
+        dq = np.zeros((len(q), 3, 6))  # q' = exp(-xi) q ~ q + q x w - rho
+        dq[:, 0, 1], dq[:, 0, 2] = -z, y
+        dq[:, 1, 0], dq[:, 1, 2] = z, -x
+        dq[:, 2, 0], dq[:, 2, 1] = -y, x
+        dq[:, :, 3:] = -np.eye(3)
+        jac = proj @ dq
+        info = np.einsum("kai,kaj,k->ij", jac, jac, 1.0 / var[idx])
+        out[i] = np.linalg.inv(info)
+    return out

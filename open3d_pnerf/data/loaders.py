@@ -53,7 +53,10 @@ def load_sequence(
     Layouts: TUM RGB-D (``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``; depth
     scale 5000), 7-Scenes (``frame-XXXXXX.{color.png|color.jpg,depth.png,pose.txt}``,
     ``camera-intrinsics.txt``; depth scale 1000), Open3D/Redwood (``color|rgb|image/`` and
-    ``depth/``, optional intrinsic ``*.json`` and ``*.log`` trajectory; depth scale 1000).
+    ``depth/``, optional intrinsic ``*.json`` and ``*.log`` trajectory; depth scale 1000),
+    and LLFF-style image folders (``poses_bounds.npy``, ``images_N/``, COLMAP ``sparse/0/``),
+    which give an image-only :class:`~open3d_pnerf.data.llff.ImageSequence` with SfM poses
+    and sparse points (see :func:`~open3d_pnerf.data.llff.read_llff`; the smallest images).
 
     intrinsic / color_intrinsic / depth_scale override what the folder says. depth_trunc
     (m, 0 = none) drops farther depth. stride keeps every stride-th frame, max_frames caps
@@ -75,6 +78,17 @@ def load_sequence(
     if intrinsic is not None:
         check_intrinsic(intrinsic)
 
+    if (path / "poses_bounds.npy").is_file():
+        from .llff import read_llff  # llff builds on this module's helpers
+
+        given = {"intrinsic": intrinsic, "depth_scale": depth_scale, "color_intrinsic": color_intrinsic,
+                 "depth_trunc": depth_trunc or None}
+        unused = [k for k, v in given.items() if v is not None]
+        if unused:
+            raise InputError(f"{path} is an LLFF image folder (no depth, camera from poses_bounds.npy): "
+                             f"{', '.join(unused)} do not apply")
+        seq = read_llff(path, image_scale=image_scale)
+        return seq.select(np.arange(0, len(seq), stride)[:max_frames])
     if (path / "rgb.txt").is_file() and (path / "depth.txt").is_file():
         readers, ts, poses, intr, cintr, name = _tum(path, intrinsic, depth_scale)
     elif list(path.glob("frame-*.depth.png")):
@@ -83,8 +97,9 @@ def load_sequence(
         readers, ts, poses, intr, cintr, name = _redwood(path, intrinsic, depth_scale)
     else:
         raise DatasetError(
-            f"{path}: not a known RGB-D layout. Expected TUM (rgb.txt + depth.txt), 7-Scenes "
-            "(frame-XXXXXX.color.png/.depth.png) or Open3D/Redwood (color/ + depth/) folders"
+            f"{path}: not a known layout. Expected TUM (rgb.txt + depth.txt), 7-Scenes "
+            "(frame-XXXXXX.color.png/.depth.png), Open3D/Redwood (color/ + depth/) or LLFF "
+            "(poses_bounds.npy + images_N/) folders"
         )
     keep = np.arange(0, len(readers), stride)[:max_frames]
     seq = RGBDSequence(

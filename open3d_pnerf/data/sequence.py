@@ -146,7 +146,10 @@ class RGBDSequence:
     sits in memory at once. ``seq[i]`` gives a :class:`Frame`; ``seq.intrinsic`` is the
     depth camera's ``o3d.camera.PinholeCameraIntrinsic`` (colour is registered to it unless
     ``color_intrinsic`` says otherwise); ``seq.gt_poses`` is (N, 4, 4) camera-to-world or None.
+    has_depth is False for image-only sequences (:class:`~open3d_pnerf.data.llff.ImageSequence`).
     """
+
+    has_depth = True
 
     def __init__(
         self,
@@ -269,12 +272,13 @@ class RGBDSequence:
         return np.ascontiguousarray(color), depth
 
     # -- derived sequences --------------------------------------------------------------
-    def _derive(self, readers, timestamps, gt_poses, image_scale):
+    def _derive(self, idx: np.ndarray, image_scale: float) -> "RGBDSequence":
+        """The sequence of frames `idx` (indices into this one) at `image_scale`."""
         return RGBDSequence(
-            readers,
+            [self._readers[i] for i in idx],
             self._base_intrinsic,
-            timestamps,
-            gt_poses,
+            self.timestamps[idx],
+            None if self.gt_poses is None else self.gt_poses[idx],
             self.depth_trunc,
             self._base_color_intrinsic,
             self.name,
@@ -292,12 +296,11 @@ class RGBDSequence:
             raise InputError(f"select(): bad frame indices for {len(self)} frames of {self.name} ({exc})") from None
         if idx.size == 0:
             raise InputError(f"select(): no frames selected from {self.name}")
-        gt = None if self.gt_poses is None else self.gt_poses[idx]
-        return self._derive([self._readers[i] for i in idx], self.timestamps[idx], gt, self.image_scale)
+        return self._derive(idx, self.image_scale)
 
     def rescaled(self, image_scale: float) -> "RGBDSequence":
         """The same frames resized by `image_scale` (in (0, 1]) relative to the files."""
-        return self._derive(self._readers, self.timestamps, self.gt_poses, image_scale)
+        return self._derive(np.arange(len(self)), image_scale)
 
     def to_open3d(self, index: int) -> o3d.geometry.RGBDImage:
         """Frame `index` as an ``o3d.geometry.RGBDImage`` (depth float metres, colour uint8).
@@ -380,12 +383,16 @@ def _constant_reader(color: np.ndarray, depth: np.ndarray, source: str) -> Frame
     return read
 
 
-def check_sequence(sequence, min_frames: int = 1, what: str = "sequence") -> RGBDSequence:
-    """Return `sequence` if it is an RGBDSequence of at least `min_frames` frames."""
+def check_sequence(sequence, min_frames: int = 1, what: str = "sequence", needs_depth: bool = False) -> RGBDSequence:
+    """Return `sequence` if it is an RGBDSequence of at least `min_frames` frames (with depth
+    images if `needs_depth`)."""
     if not isinstance(sequence, RGBDSequence):
         raise InputError(f"{what} must be an RGBDSequence (see load_sequence), got {type(sequence).__name__}")
     if len(sequence) < min_frames:
         raise InputError(f"{what} has {len(sequence)} frame(s); at least {min_frames} frames are needed")
+    if needs_depth and not sequence.has_depth:
+        raise InputError(f"{what}: {sequence.name} has no depth images (an image-only sequence); this needs "
+                         "RGB-D frames. Its camera poses come from SfM: sequence.poses")
     return sequence
 
 

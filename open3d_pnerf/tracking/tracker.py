@@ -68,7 +68,7 @@ def track(
     (None = "CPU:0"). progress: show tqdm progress bars. Returns a :class:`Trajectory`;
     raises TrackingError when no registration succeeds at all.
     """
-    n = len(check_sequence(sequence, 2, "track(): sequence"))
+    n = len(check_sequence(sequence, 2, "track(): sequence", needs_depth=True))
     if not isinstance(keyframe_every, (int, np.integer)) or keyframe_every < 1:
         raise InputError(f"keyframe_every must be an integer >= 1, got {keyframe_every!r}")
     if max_keyframes is not None and (not isinstance(max_keyframes, (int, np.integer)) or max_keyframes < 2):
