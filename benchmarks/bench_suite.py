@@ -1,29 +1,33 @@
 """Issue-4 benchmark suite: the paper's experiments against Open3D TSDF fusion.
 
-Datasets (every 4th frame held out: 0, 4, 8, ...; training at 320x240):
+Datasets (RGB-D ones: every 4th frame held out: 0, 4, 8, ...; training at 320x240):
   synthetic   the room of open3d_pnerf.synthetic, 48 frames rendered at 640x480 with the
               Kinect-like noise model; exact GT mesh (geometry metrics against the surface
               seen by the sequence's cameras)
   tum         TUM fr1/xyz, the 32 shared frames (../shared/data)
   7scenes     7-Scenes redkitchen frames 150-199 (../shared/data)
-Experiments per dataset (ground-truth poses unless said; `--views` training views when
-sparse, default 10, evenly spaced over the non-held-out frames):
+  fern        LLFF fern (../shared/data), images only, the paper's protocol: every 8th image
+              held out (0, 8, 16), 10 training views, 504x378, COLMAP poses and sparse points
+              as depth targets; no TSDF (no depth images)
+Experiments per dataset (ground-truth poses unless said, SfM poses for fern; `--views`
+training views when sparse, default 10, evenly spaced over the non-held-out frames):
   ablation    photometric / + density (Kd) / + density + depth (Kd, Kz) at sparse views
   losses      pnerf vs dsnerf vs photometric at sparse views (shares the ablation runs)
-  views       pnerf and TSDF with 5, 10, 20 and all training frames
-  poses       pnerf at sparse views with poses from our tracking instead of GT
+  views       pnerf and TSDF with 5, 10, 20 and all training frames (RGB-D datasets)
+  poses       pnerf at sparse views with poses from our tracking instead of GT (RGB-D)
 Every run reports held-out PSNR/SSIM, depth L1, depth calibration, mesh accuracy/
 completeness/F-score (synthetic), wall time, peak RSS and training samples/s; the TSDF
 baseline is fused from the same training frames and poses. Each run is a fresh process
 (so peak RSS is per run); `--jobs` of them run at once (default: one per core, one torch
 thread each). Before the runs, the synthetic sequence and its reference surface are rendered
 once to benchmarks/results/cache/ (gitignored) and each dataset is tracked once there; the
-suite's wall time includes that. About 23 minutes on this 2-core machine.
+suite's wall time includes that.
 
-    python benchmarks/bench_suite.py [--budget 50] [--jobs 2] [--datasets synthetic,tum,7scenes] [--quick]
+    python benchmarks/bench_suite.py [--budget 50] [--jobs 2] [--datasets synthetic,tum,7scenes,fern] [--quick]
+    python benchmarks/bench_suite.py --datasets fern --budget 600 --name fern   # the Fern experiment
 
-Writes benchmarks/results/suite.json, suite.md and suite_*.png (--quick: tiny synthetic
-runs, results/suite_quick.*, a smoke test of the script in ~2 minutes).
+Writes benchmarks/results/<name>.json, <name>.md and <name>_*.png (name: suite; --quick:
+tiny synthetic runs, results/suite_quick.*, a smoke test of the script in ~2 minutes).
 """
 
 from __future__ import annotations
@@ -42,9 +46,12 @@ import numpy as np
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 PATHS = {"tum": SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz",
-         "7scenes": SHARED / "7scenes_redkitchen" / "frames_150-199"}
+         "7scenes": SHARED / "7scenes_redkitchen" / "frames_150-199",
+         "fern": SHARED / "llff_fern" / "nerf_llff_data" / "fern"}
+IMAGE_ONLY = {"fern"}  # datasets without depth images: SfM poses, no TSDF, no tracking
 OUT = Path(__file__).resolve().parent / "results"
-HOLDOUT_EVERY = 4
+HOLDOUT_EVERY = {"fern": 8}  # the LLFF protocol; 4 for the others
+IMAGE_SCALE = {"fern": 1.0}  # 504x378 as the paper's LLFF runs; 0.5 (320x240) for the others
 VARIANTS = {  # name -> config overrides
     "photometric": dict(loss="photometric"),
     "+density": dict(loss="pnerf", gains={"depth": 0.0}),
@@ -86,7 +93,10 @@ def prepare_synthetic(cache: Path, quick: bool) -> str:
 
 def poses_for(dataset: str, seq, kind: str, cache: Path):
     """(poses, covariances): exact/GT ones, or tracked (cached per dataset) and expressed in
-    the GT world frame by the ATE alignment (so geometry metrics use the GT mesh's frame)."""
+    the GT world frame by the ATE alignment (so geometry metrics use the GT mesh's frame);
+    (None, None) for an image-only sequence (reconstruct() takes its SfM poses)."""
+    if not seq.has_depth:
+        return None, None
     if kind == "gt":
         return seq.gt_poses, np.zeros((len(seq), 6, 6))
     file = cache / f"tracked_{dataset}.npz"
@@ -110,22 +120,22 @@ def run_one(spec: dict) -> dict:
 
     seq, reference = load(spec["source"], Path(spec["cache"]))
     poses, covs = poses_for(spec["source"], seq, spec["poses"], Path(spec["cache"]))
+    d = spec["dataset"]
     cfg = pn.ReconstructionConfig.preset(
         "test" if spec["quick"] else "fast", time_budget_s=spec["budget"], max_steps=10**6,
-        holdout_every=HOLDOUT_EVERY, train_views=spec["views"], progress=False, **VARIANTS[spec["variant"]])
+        holdout_every=HOLDOUT_EVERY.get(d, 4), image_scale=IMAGE_SCALE.get(d, 0.5), train_views=spec["views"],
+        progress=False, **VARIANTS[spec["variant"]])
     t0 = time.perf_counter()
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     wall = time.perf_counter() - t0
     comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
     compare_s = time.perf_counter() - t0 - wall
     if spec.get("figure"):
-        for frame, fig in zip(comparison.frames, comparison.figures):
-            fig.savefig(spec["figure"], dpi=60)
-            break
+        comparison.figures[0].savefig(spec["figure"], dpi=60)
     tr = recon.stats["training"]
     return {**{k: spec[k] for k in ("dataset", "variant", "views", "poses")},
             "train_frames": len(recon.train_indices), "model": comparison.table["model"],
-            "tsdf": comparison.table["tsdf"], "wall_s": round(wall, 1), "compare_s": round(compare_s, 1),
+            "tsdf": comparison.table.get("tsdf", {}), "wall_s": round(wall, 1), "compare_s": round(compare_s, 1),
             "timings": recon.stats["timings"], "steps": tr["steps"],
             "samples_per_s": round(tr["samples_per_s"]), "peak_rss_mb": round(_peak_rss_mb())}
 
@@ -140,16 +150,18 @@ def plan(datasets, views: int, quick: bool) -> list[dict]:
     runs = []
     for d in datasets:
         runs += [dict(dataset=d, variant=v, views=views, poses="gt") for v in VARIANTS]
+        if d in IMAGE_ONLY:
+            continue
         runs += [dict(dataset=d, variant="pnerf", views=n, poses="gt") for n in sweep if n != views]
         runs.append(dict(dataset=d, variant="pnerf", views=views, poses="tracked"))
     return runs
 
 
 def markdown(results: list[dict], meta: dict) -> str:
-    mm = lambda v: f"{1000 * v:.1f}" if v is not None else "-"  # noqa: E731
     lines = [f"Budget {meta['budget_s']:.0f} s of training per run, {meta['threads']} thread(s), {meta['jobs']} run(s) "
              f"at once; the suite took {meta['wall_minutes']} min; {meta['machine']}.",
-             "Held out: every 4th frame. Views: training frames (all = every non-held-out frame).", ""]
+             "Held out: every 4th frame (fern: every 8th). Views: training frames (all = every non-held-out "
+             "frame). '-': not measured (fern has no depth images, so no depth metrics and no TSDF).", ""]
     head = ("| dataset | run | views | poses | PSNR (dB) | SSIM | depth L1 (mm) | within 1σ | "
             "acc. (mm) | compl. (mm) | F@20mm | F@50mm | TSDF PSNR (all / hits) | TSDF depth L1 (mm) | "
             "TSDF compl. (mm) | TSDF F@20mm | steps | samples/s | peak RSS (MB) |")
@@ -157,11 +169,13 @@ def markdown(results: list[dict], meta: dict) -> str:
     for r in results:
         m, t = r["model"], r["tsdf"]
         g = lambda d, k, f=".3f": format(d[k], f) if k in d else "-"  # noqa: E731
+        mm = lambda d, k: f"{1000 * d[k]:.1f}" if k in d else "-"  # noqa: E731
+        tsdf_psnr = f"{t['psnr']:.2f} / {t['psnr_hits']:.2f}" if t else "-"
         lines.append(
             f"| {r['dataset']} | {r['variant']} | {r['views'] or 'all'} ({r['train_frames']}) | {r['poses']} | "
-            f"{m['psnr']:.2f} | {m['ssim']:.3f} | {mm(m['depth_l1'])} | {m['within_1']:.2f} | "
-            f"{mm(m.get('accuracy'))} | {mm(m.get('completeness'))} | {g(m, 'fscore_20mm')} | {g(m, 'fscore_50mm')} | "
-            f"{t['psnr']:.2f} / {t['psnr_hits']:.2f} | {mm(t['depth_l1'])} | {mm(t.get('completeness'))} | "
+            f"{m['psnr']:.2f} | {m['ssim']:.3f} | {mm(m, 'depth_l1')} | {g(m, 'within_1', '.2f')} | "
+            f"{mm(m, 'accuracy')} | {mm(m, 'completeness')} | {g(m, 'fscore_20mm')} | {g(m, 'fscore_50mm')} | "
+            f"{tsdf_psnr} | {mm(t, 'depth_l1')} | {mm(t, 'completeness')} | "
             f"{g(t, 'fscore_20mm')} | {r['steps']} | {r['samples_per_s'] / 1000:.0f}k | {r['peak_rss_mb']} |")
     return "\n".join(lines) + "\n"
 
@@ -170,7 +184,9 @@ def sweep_figure(results: list[dict], path: Path) -> None:
     """Held-out PSNR (and F-score where known) against the number of training views."""
     from matplotlib.figure import Figure
 
-    datasets = sorted({r["dataset"] for r in results})
+    datasets = sorted({r["dataset"] for r in results if r["tsdf"]})  # the RGB-D ones have a view sweep
+    if not datasets:
+        return
     fig = Figure(figsize=(4 * len(datasets), 3.2), layout="constrained")
     axes = fig.subplots(1, len(datasets), squeeze=False)[0]
     for ax, d in zip(axes, datasets):
@@ -197,7 +213,8 @@ def main():
     ap.add_argument("--budget", type=float, default=50.0, help="training seconds per run")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
     ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
-    ap.add_argument("--datasets", default="synthetic,tum,7scenes")
+    ap.add_argument("--datasets", default="synthetic,tum,7scenes,fern")
+    ap.add_argument("--name", default="suite", help="stem of the result files in benchmarks/results/")
     ap.add_argument("--views", type=int, default=10, help="training views of the sparse-view runs")
     ap.add_argument("--quick", action="store_true", help="tiny synthetic runs: a smoke test of the script")
     args = ap.parse_args()
@@ -207,13 +224,14 @@ def main():
         raise SystemExit(f"shared data not found for {missing} (expected under {SHARED}); use --datasets synthetic")
     budget = 10.0 if args.quick else args.budget
     views = 5 if args.quick else args.views
-    stem = "suite_quick" if args.quick else "suite"
+    stem = "suite_quick" if args.quick else args.name
     cache = OUT / "cache"
     cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     sources = {d: prepare_synthetic(cache, args.quick) if d == "synthetic" else d for d in datasets}
-    for source in sources.values():  # track each dataset once, before the runs that share it
-        poses_for(source, load(source, cache)[0], "tracked", cache)
+    for d, source in sources.items():  # track each RGB-D dataset once, before the runs that share it
+        if d not in IMAGE_ONLY:
+            poses_for(source, load(source, cache)[0], "tracked", cache)
     specs = plan(datasets, views, args.quick)
     for spec in specs:
         spec.update(threads=args.threads, budget=budget, quick=args.quick, cache=str(cache),
@@ -225,13 +243,14 @@ def main():
         for future in as_completed(futures):
             print(summary_line(future.result()), flush=True)
     results = [f.result() for f in futures]
-    tracked = {d: float(np.load(cache / f"tracked_{s}.npz")["ate"]) for d, s in sources.items()}
+    tracked = {d: float(np.load(cache / f"tracked_{s}.npz")["ate"]) for d, s in sources.items() if d not in IMAGE_ONLY}
     import torch
 
     meta = {"machine": f"{platform.machine()} {platform.processor() or ''} {multiprocessing.cpu_count()} cores, "
                        f"torch {torch.__version__}".replace("  ", " "),
             "budget_s": budget, "threads": args.threads, "jobs": args.jobs,
-            "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "holdout_every": HOLDOUT_EVERY, "views": views,
+            "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
+            "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets}, "views": views,
             "tracked_ate_rmse_mm": {d: round(1000 * a, 2) for d, a in tracked.items()}}
     (OUT / f"{stem}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{stem}.md").write_text(markdown(results, meta))
@@ -240,11 +259,13 @@ def main():
 
 
 def summary_line(r: dict) -> str:
-    return (f"{r['dataset']:9s} {r['variant']:11s} views {r['views'] or 'all':>3} {r['poses']:7s} "
-              f"PSNR {r['model']['psnr']:.2f} (TSDF {r['tsdf']['psnr']:.2f}) depth L1 "
-              f"{1000 * r['model']['depth_l1']:.1f} mm within1 {r['model']['within_1']:.2f} "
-              f"F@20 {r['model'].get('fscore_20mm', float('nan')):.3f} (TSDF {r['tsdf'].get('fscore_20mm', float('nan')):.3f}) "
-              f"{r['wall_s']:.0f} s {r['peak_rss_mb']} MB")
+    m, t = r["model"], r["tsdf"]
+    line = (f"{r['dataset']:9s} {r['variant']:11s} views {r['views'] or 'all':>3} {r['poses']:7s} "
+            f"PSNR {m['psnr']:.2f} SSIM {m['ssim']:.3f}")
+    if t:
+        line += (f" (TSDF {t['psnr']:.2f}) depth L1 {1000 * m['depth_l1']:.1f} mm within1 {m['within_1']:.2f} "
+                 f"F@20 {m.get('fscore_20mm', float('nan')):.3f} (TSDF {t.get('fscore_20mm', float('nan')):.3f})")
+    return line + f" {r['wall_s']:.0f} s {r['peak_rss_mb']} MB"
 
 
 if __name__ == "__main__":
