@@ -26,6 +26,7 @@ bench: $(STAMP)  # needs ../shared/data; see benchmarks/README.md for the time e
 	$(PY) benchmarks/bench_targets.py
 	$(PY) benchmarks/bench_nerf.py
 	$(PY) benchmarks/bench_suite.py
+	$(PY) benchmarks/bench_suite.py --datasets fern --budget 600 --name fern
 	$(PY) benchmarks/bench_distributed.py
 	$(PY) benchmarks/bench_pose_refinement.py
 	$(PY) benchmarks/bench_memory.py

@@ -137,7 +137,7 @@ def run_one(spec: dict) -> dict:
     return {**{k: spec[k] for k in ("dataset", "variant", "views", "poses")},
             "train_frames": len(recon.train_indices), "model": comparison.table["model"],
             "tsdf": comparison.table.get("tsdf", {}), "wall_s": round(wall, 1), "compare_s": round(compare_s, 1),
-            "timings": recon.stats["timings"], "steps": tr["steps"],
+            "timings": recon.stats["timings"], "targets": recon.stats["targets"], "steps": tr["steps"],
             "samples_per_s": round(tr["samples_per_s"]), "peak_rss_mb": round(_peak_rss_mb())}
 
 

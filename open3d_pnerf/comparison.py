@@ -126,18 +126,21 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
 def comparison_figure(item: dict):
     """A matplotlib Figure for one held-out frame (an item of evaluation.heldout_renders):
     rows input / model / TSDF, columns colour, depth, |depth error|, depth sigma (shared
-    colour scales per column; errors and sigmas on the same scale)."""
+    colour scales per column; errors and sigmas on the same scale). Without sensor depth
+    (image-only sequences) the depth and error panels of the input are left empty and the
+    scales follow the model's depth and sigma."""
     from matplotlib.figure import Figure
 
     gt = item["depth"]
     valid = gt > 0
-    dmax = float(np.percentile(gt[valid], 99)) if valid.any() else 1.0
     model, tsdf = item["model"], item["tsdf"]
-    err = lambda d, ok: np.where(ok & valid, np.abs(d - gt), np.nan)  # noqa: E731
+    dmax = float(np.percentile(gt[valid] if valid.any() else model["depth"], 99))
+    err = lambda d, ok: np.where(ok & valid, np.abs(d - gt), np.nan) if valid.any() else None  # noqa: E731
     model_err = err(model["depth"], np.ones_like(valid))
-    emax = float(np.nanpercentile(model_err, 95)) if np.isfinite(model_err).any() else 0.1
+    spread = model_err if model_err is not None else model["depth_std"]
+    emax = float(np.nanpercentile(spread, 95)) if np.isfinite(spread).any() else 0.1
     rows = [
-        ("input", item["color"], np.where(valid, gt, np.nan), None, None),
+        ("input", item["color"], np.where(valid, gt, np.nan) if valid.any() else None, None, None),
         ("model", model["color"], model["depth"], model_err, model["depth_std"]),
     ]
     if tsdf is not None:
