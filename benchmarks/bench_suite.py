@@ -25,7 +25,7 @@ once to benchmarks/results/cache/ (gitignored) and each dataset is tracked once 
 suite's wall time includes that.
 
     python benchmarks/bench_suite.py [--budget 50] [--jobs 2] [--datasets synthetic,tum,7scenes] [--quick]
-    python benchmarks/bench_suite.py --datasets fern --budget 600 --name fern   # the Fern experiment
+    python benchmarks/bench_suite.py --datasets fern --budget 600 --name fern [--seed 1]   # the Fern experiment
 
 Writes benchmarks/results/<name>.json, <name>.md and <name>_*.png (name: suite; --quick:
 tiny synthetic runs, results/suite_quick.*, a smoke test of the script in ~2 minutes).
@@ -125,7 +125,7 @@ def run_one(spec: dict) -> dict:
     cfg = pn.ReconstructionConfig.preset(
         "test" if spec["quick"] else "fast", time_budget_s=spec["budget"], max_steps=10**6,
         holdout_every=HOLDOUT_EVERY.get(d, 4), image_scale=IMAGE_SCALE.get(d, 0.5), train_views=spec["views"],
-        progress=False, **VARIANTS[spec["variant"]])
+        seed=spec["seed"], progress=False, **VARIANTS[spec["variant"]])
     t0 = time.perf_counter()
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     wall = time.perf_counter() - t0
@@ -216,6 +216,7 @@ def main():
     ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
     ap.add_argument("--datasets", default="synthetic,tum,7scenes", help="comma-separated; also: fern")
     ap.add_argument("--name", default="suite", help="stem of the result files in benchmarks/results/")
+    ap.add_argument("--seed", type=int, default=0, help="seed of every run (rays, samples, initialisation)")
     ap.add_argument("--views", type=int, default=10, help="training views of the sparse-view runs")
     ap.add_argument("--quick", action="store_true", help="tiny synthetic runs: a smoke test of the script")
     args = ap.parse_args()
@@ -235,7 +236,7 @@ def main():
             poses_for(source, load(source, cache)[0], "tracked", cache)
     specs = plan(datasets, views, args.quick)
     for spec in specs:
-        spec.update(threads=args.threads, budget=budget, quick=args.quick, cache=str(cache),
+        spec.update(threads=args.threads, budget=budget, quick=args.quick, cache=str(cache), seed=args.seed,
                     source=sources[spec["dataset"]])
         if spec["variant"] == "pnerf" and spec["views"] == views and spec["poses"] == "gt":
             spec["figure"] = str(OUT / f"{stem}_{spec['dataset']}_frame.png")
@@ -249,7 +250,7 @@ def main():
 
     meta = {"machine": f"{platform.machine()} {platform.processor() or ''} {multiprocessing.cpu_count()} cores, "
                        f"torch {torch.__version__}".replace("  ", " "),
-            "budget_s": budget, "threads": args.threads, "jobs": args.jobs,
+            "budget_s": budget, "threads": args.threads, "jobs": args.jobs, "seed": args.seed,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
             "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets}, "views": views,
             "tracked_ate_rmse_mm": {d: round(1000 * a, 2) for d, a in tracked.items()}}
