@@ -52,7 +52,7 @@ PATHS = {"tum": SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz",
 IMAGE_ONLY = {"fern"}  # datasets without depth images: SfM poses, no TSDF, no tracking
 OUT = Path(__file__).resolve().parent / "results"
 HOLDOUT_EVERY = {"fern": 8}  # the LLFF protocol; 4 for the others
-IMAGE_SCALE = {"fern": 1.0}  # 504x378 as the paper's LLFF runs; 0.5 (320x240) for the others
+IMAGE_SCALE = {"fern": 1.0}  # 504x378 (images_8, nerf-pytorch's fern setting); 0.5 (320x240) for the others
 VARIANTS = {  # name -> config overrides
     "photometric": dict(loss="photometric"),
     "+density": dict(loss="pnerf", gains={"depth": 0.0}),
@@ -150,7 +150,8 @@ def plan(datasets, views: int, quick: bool) -> list[dict]:
     sweep = (3, 0) if quick else (5, 10, 20, 0)
     runs = []
     for d in datasets:
-        runs += [dict(dataset=d, variant=v, views=views, poses="gt") for v in VARIANTS]
+        given = "sfm" if d in IMAGE_ONLY else "gt"
+        runs += [dict(dataset=d, variant=v, views=views, poses=given) for v in VARIANTS]
         if d in IMAGE_ONLY:
             continue
         runs += [dict(dataset=d, variant="pnerf", views=n, poses="gt") for n in sweep if n != views]
@@ -238,7 +239,7 @@ def main():
     for spec in specs:
         spec.update(threads=args.threads, budget=budget, quick=args.quick, cache=str(cache), seed=args.seed,
                     source=sources[spec["dataset"]])
-        if spec["variant"] == "pnerf" and spec["views"] == views and spec["poses"] == "gt":
+        if spec["variant"] == "pnerf" and spec["views"] == views and spec["poses"] in ("gt", "sfm"):
             spec["figure"] = str(OUT / f"{stem}_{spec['dataset']}_frame.png")
     with ProcessPoolExecutor(args.jobs, multiprocessing.get_context("spawn"), max_tasks_per_child=1) as pool:
         futures = [pool.submit(run_one, spec) for spec in specs]  # fresh process per run: per-run peak RSS

@@ -167,7 +167,8 @@ def _report_md(report: dict, recon, out: Path) -> str:
     ]
     if report["scores"]:
         lines += ["## Held-out frames", "", *_scores_table(report["scores"]), ""]
-        lines += [f"![held-out frame: input, model, TSDF]({name})" for name in report["figures"]]
+        shown = "input, model, TSDF" if "tsdf" in report["scores"] else "input, model"
+        lines += [f"![held-out frame: {shown}]({name})" for name in report["figures"]]
     return "\n".join(lines) + "\n"
 
 

@@ -129,13 +129,15 @@ def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = Non
 def score_renders(renders) -> dict:
     """{"model": {...}, "tsdf": {...}}: means over frames of image, depth and calibration
     metrics (items as yielded by :func:`heldout_renders`). TSDF colour is scored over all
-    pixels ("psnr") and over the pixels its ray cast hits ("psnr_hits"). Frames without
-    sensor depth (image-only sequences) have image metrics only."""
+    pixels ("psnr") and over the pixels its ray cast hits ("psnr_hits"). Without sensor depth
+    in any frame (image-only sequences) only image metrics are given."""
+    renders = list(renders)
+    with_depth = any(r["depth"].any() for r in renders)
     rows: dict[str, list[dict]] = {"model": [], "tsdf": []}
     for r in renders:
         color, depth, out, t = r["color"], r["depth"], r["model"], r["tsdf"]
         row = {"psnr": psnr(out["color"], color), "ssim": ssim(out["color"], color)}
-        if depth.any():
+        if with_depth:
             row.update({f"depth_{m}": v for m, v in depth_errors(out["depth"], depth).items()})
             row.update(depth_calibration(out["depth"], out["depth_std"], depth))
         rows["model"].append(row)

@@ -64,6 +64,18 @@ def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: floa
     return np.stack([lo - margin, hi + margin]).astype(np.float32)
 
 
+def frustum_box(K: np.ndarray, image_size: tuple[int, int], poses: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """(2, 3) axis-aligned box holding each camera's view frustum between its near and far
+    z-depth bounds (N, 2); K (3, 3), image_size (H, W), poses (N, 4, 4) camera-to-world."""
+    h, w = image_size
+    corners = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [-0.5, h - 0.5, 1], [w - 0.5, h - 0.5, 1]])
+    rays = corners @ np.linalg.inv(K).T  # z = 1
+    pts = [(rays[None] * z[:, None, None]) @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
+           for z in bounds.T]
+    pts = np.concatenate(pts).reshape(-1, 3)
+    return np.stack([pts.min(0), pts.max(0)]).astype(np.float32)
+
+
 def evenly_spaced(n: int, k: int) -> np.ndarray:
     """Indices of min(k, n) items evenly spread over range(n), first and last included."""
     return np.unique(np.round(np.linspace(0, n - 1, min(k, n))).astype(int)) if n and k else np.zeros(0, int)
@@ -429,7 +441,12 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
     targets = depth_targets(train_seq, poses=poses[train_idx], covariances=covariances[train_idx],
                             storage_dir=storage, progress=config.progress)
     K = train_seq.K
-    aabb = dist.broadcast_array(scene_box(targets, poses[train_idx], K), "the scene box's broadcast", config.device)
+    box = scene_box(targets, poses[train_idx], K)
+    if not rgbd_sequence.has_depth and not targets.valid.any():  # no SfM point in view: the bounds' frusta
+        warnings.warn(f"{rgbd_sequence.name}: no SfM point gives a depth target in the training views; "
+                      "the scene box is the camera frusta between the near/far bounds")
+        box = frustum_box(train_seq.K, train_seq.image_size, poses[train_idx], train_seq.bounds)
+    aabb = dist.broadcast_array(box, "the scene box's broadcast", config.device)
     timings["targets_s"] = round(time.perf_counter() - t1, 2)
     stages.update(1)
 

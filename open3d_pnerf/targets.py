@@ -188,7 +188,8 @@ def depth_targets(
 
     An image-only sequence (``sequence.has_depth`` False, e.g. an LLFF folder) gets the
     targets of its sparse SfM points instead (:func:`sparse_depth_targets`); its own poses
-    and covariances are used unless others are given.
+    and covariances are used unless others are given, and the dense-fusion options (sensor,
+    neighbors, consistency_sigmas, fill_min_views, progress) do not apply.
     """
     n = len(check_sequence(sequence, what="depth_targets(): sequence"))
     if trajectory is not None:

@@ -16,6 +16,7 @@ import open3d_pnerf as pn
 from open3d_pnerf import cli
 from open3d_pnerf.data import ImageSequence, load_sequence, read_llff, sfm_pose_covariances
 from open3d_pnerf.data.colmap import read_cameras_binary, read_images_binary, read_points3d_binary
+from open3d_pnerf.data.loaders import write_sequence
 from open3d_pnerf.errors import DatasetError, InputError
 from open3d_pnerf.evaluation import heldout_scores
 from open3d_pnerf.reconstruction import build_field
@@ -294,13 +295,15 @@ def test_load_sequence_reads_an_llff_folder_as_an_image_sequence(tmp_path):
     np.testing.assert_array_equal(sub.poses, seq.poses[[0, 2]])
     np.testing.assert_array_equal(sub.covariances, seq.covariances[[0, 2]])
     assert sub[1].color.shape == (3, 4, 3)
+    np.testing.assert_array_equal(sub.timestamps, [0, 2])  # frame numbers of the folder, as for RGB-D
     with pytest.raises(InputError, match=r"LLFF image folder .*depth_scale, depth_trunc do not apply"):
         load_sequence(root, depth_scale=5000, depth_trunc=3.0)
 
 
 def test_image_sequences_are_refused_where_depth_is_needed_and_give_sparse_targets(tmp_path):
     seq = load_sequence(make_llff(tmp_path / "scene", points=VISIBLE))
-    for call in (lambda: pn.track(seq), lambda: pn.tsdf_fusion(seq, seq.poses)):
+    for call in (lambda: pn.track(seq), lambda: pn.tsdf_fusion(seq, seq.poses),
+                 lambda: write_sequence(seq, tmp_path / "copy")):
         with pytest.raises(InputError, match="scene has no depth images .* sequence.poses"):
             call()
     targets = pn.depth_targets(seq, progress=False)  # the SfM poses and points
@@ -386,3 +389,22 @@ def test_reconstruct_learns_the_held_out_fern_views_from_ten_images(shared_data)
     untrained = heldout_scores(recon, seq)["model"]
     print(f"fern held-out PSNR {trained['psnr']:.2f} dB (untrained {untrained['psnr']:.2f})")
     assert trained["psnr"] > untrained["psnr"] + 4 and trained["ssim"] > untrained["ssim"] + 0.2
+
+
+def test_sfm_pose_covariance_of_a_frame_whose_points_do_not_fix_it_is_unbounded():
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    xyz = np.array([[0.0, 0, 2]] * 3 + [[0.1, 0.1, 2], [-0.2, 0.1, 3], [0.3, -0.1, 2.5], [0.0, 0.2, 4]])
+    observed = np.array([[1, 0]] * 3 + [[0, 1]] * 4, bool)  # frame 0 sees one point three times
+    with pytest.warns(UserWarning, match="frame 0: its 3 SfM points do not fix its pose"):
+        cov = sfm_pose_covariances(np.tile(np.eye(4), (2, 1, 1)), K, xyz, np.full(7, 0.5), observed)
+    np.testing.assert_array_equal(cov[0], np.eye(6) * 1e6)
+    assert np.linalg.eigvalsh(cov[1]).max() < 1e-2
+
+
+def test_reconstruct_without_sfm_points_boxes_the_camera_frusta(tmp_path):
+    seq = load_sequence(make_llff(tmp_path / "scene", points=[]))
+    cfg = pn.ReconstructionConfig.preset("test", max_steps=2, image_scale=1.0, progress=False)
+    with pytest.warns(UserWarning, match="no SfM point gives a depth target"):
+        recon = pn.reconstruct(seq, cfg)
+    far = seq.poses[:, :3, 3] + seq.poses[:, :3, 2] * seq.bounds[:, 1:]  # optical axis at the far bound
+    assert ((far >= recon.aabb[0] - 1e-5) & (far <= recon.aabb[1] + 1e-5)).all()

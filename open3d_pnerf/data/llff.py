@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import DatasetError, InputError
 from .colmap import read_cameras_binary, read_images_binary, read_points3d_binary
 from .loaders import _image_files, pinhole
-from .sequence import RGBDSequence, check_poses, read_image
+from .sequence import RGBDSequence, check_intrinsic, check_poses, read_image
 
 POSES_FILE = "poses_bounds.npy"
 NEAR_SCALE = 0.75  # read_llff's default scale puts the nearest bound at 1 / 0.75 units, as NeRF's loader
@@ -71,17 +71,20 @@ class ImageSequence(RGBDSequence):
     has_depth = False
 
     def __init__(self, image_paths, intrinsic, poses, covariances, points: SparsePoints, bounds,
-                 scale: float = 1.0, name: str = "images", image_scale: float = 1.0):
+                 scale: float = 1.0, name: str = "images", image_scale: float = 1.0, timestamps=None):
         self.image_paths = [Path(p) for p in image_paths]
         n = len(self.image_paths)
+        check_intrinsic(intrinsic)
         readers = [_color_reader(p, intrinsic.height, intrinsic.width) for p in self.image_paths]
-        super().__init__(readers, intrinsic, name=name, image_scale=image_scale)
+        super().__init__(readers, intrinsic, timestamps, name=name, image_scale=image_scale)
         self.poses = check_poses(poses, n, f"{name}: poses")
         self.covariances = np.asarray(covariances, np.float64)
         self.bounds = np.asarray(bounds, np.float64)
         if self.covariances.shape != (n, 6, 6) or self.bounds.shape != (n, 2):
             raise InputError(f"{name}: need (N, 6, 6) covariances and (N, 2) bounds for {n} images, got "
                              f"{self.covariances.shape} and {self.bounds.shape}")
+        if not (np.isfinite(self.covariances).all() and np.isfinite(self.bounds).all()):
+            raise InputError(f"{name}: covariances and bounds must be finite")
         if points.observed.shape != (len(points), n):
             raise InputError(f"{name}: points.observed must be (M, {n}), got {points.observed.shape}")
         self._points = points  # error in pixels of the files' images
@@ -100,7 +103,8 @@ class ImageSequence(RGBDSequence):
     def _derive(self, idx: np.ndarray, image_scale: float) -> "ImageSequence":
         points = dataclasses.replace(self._points, observed=self._points.observed[:, idx])
         return ImageSequence([self.image_paths[i] for i in idx], self._base_intrinsic, self.poses[idx],
-                             self.covariances[idx], points, self.bounds[idx], self.scale, self.name, image_scale)
+                             self.covariances[idx], points, self.bounds[idx], self.scale, self.name, image_scale,
+                             self.timestamps[idx])
 
 
 def _color_reader(path: Path, height: int, width: int):
@@ -112,10 +116,6 @@ def _color_reader(path: Path, height: int, width: int):
 
     read.source = str(path)
     return read
-
-
-def is_llff_folder(path: Path) -> bool:
-    return (Path(path) / POSES_FILE).is_file()
 
 
 def image_factors(path: Path) -> list[int]:
@@ -240,7 +240,8 @@ def sfm_pose_covariances(poses: np.ndarray, K: np.ndarray, xyz: np.ndarray, erro
     projection with respect to a right perturbation [rotation, translation] of the pose (as
     the tracker's covariances); the covariance is its inverse. Holding the points fixed
     ignores their own uncertainty, so these are lower bounds. A frame seeing fewer than 3
-    points gets an effectively unbounded covariance (1e6 on its diagonal) and a warning.
+    points, or points that do not fix its pose, gets an effectively unbounded covariance (1e6
+    on its diagonal) and a warning.
     """
     poses = check_poses(poses, what="sfm_pose_covariances(): poses")
     fx, fy = K[0, 0], K[1, 1]
@@ -266,5 +267,10 @@ def sfm_pose_covariances(poses: np.ndarray, K: np.ndarray, xyz: np.ndarray, erro
         dq[:, :, 3:] = -np.eye(3)
         jac = proj @ dq
         info = np.einsum("kai,kaj,k->ij", jac, jac, 1.0 / var[idx])
+        if np.linalg.cond(info) > 1e12:  # e.g. coincident or collinear points
+            warnings.warn(f"frame {i}: its {len(idx)} SfM points do not fix its pose (degenerate "
+                          "geometry): its pose covariance is unbounded")
+            out[i] = np.eye(6) * 1e6
+            continue
         out[i] = np.linalg.inv(info)
     return out

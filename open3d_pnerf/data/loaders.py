@@ -349,6 +349,9 @@ def write_sequence(sequence: RGBDSequence, path, depth_scale: float = 1000.0, pr
     import cv2
     from tqdm.auto import tqdm
 
+    from .sequence import check_sequence
+
+    check_sequence(sequence, what="write_sequence(): sequence", needs_depth=True)
     path = Path(path)
     for sub in ("color", "depth"):
         (path / sub).mkdir(parents=True, exist_ok=True)
