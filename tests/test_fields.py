@@ -106,39 +106,103 @@ def test_field_state_dict_round_trip_gives_identical_outputs():
 
 
 # -- hash grid -------------------------------------------------------------------------------
-def dense_level_encoding(res: int = 16, features: int = 2) -> HashGridEncoding:
-    """One dense level (res + 1)^3 <= table, with row r of the table holding [r, -r]."""
-    enc = HashGridEncoding(levels=1, features=features, log2_table_size=13, base_resolution=res,
-                           max_resolution=res)
-    assert bool(enc.dense[0]) and (res + 1) ** 3 <= enc.table_size
+PRIMES = (1, 2654435761, 805459861)
+
+
+def reference_hash_encoding(x: torch.Tensor, resolutions, tables, table_size: int) -> torch.Tensor:
+    """Instant-NGP's encoding written plainly, level by level (the reference for the fast path).
+
+    tables[l]: (table_size, F) rows of level l. A level with (R + 1)^3 <= table_size reads
+    vertex (i, j, k) from row i + j (R + 1) + k (R + 1)^2, a finer one from row
+    (i * 1 ^ j * 2654435761 ^ k * 805459861) mod table_size; trilinear weights.
+    """
+    out = []
+    for r, table in zip(resolutions, tables):
+        pos = x.clamp(0, 1) * r
+        base = pos.floor().clamp(max=r - 1)
+        frac = pos - base
+        feat = 0
+        for corner in range(8):
+            d = torch.tensor([corner & 1, (corner >> 1) & 1, (corner >> 2) & 1])
+            v = base.long() + d
+            if (r + 1) ** 3 <= table_size:
+                row = v[:, 0] + v[:, 1] * (r + 1) + v[:, 2] * (r + 1) ** 2
+            else:
+                row = (v[:, 0] * PRIMES[0] ^ v[:, 1] * PRIMES[1] ^ v[:, 2] * PRIMES[2]) % table_size
+            w = torch.where(d.bool(), frac, 1 - frac).prod(-1, keepdim=True)
+            feat = feat + w * table[row]
+        out.append(feat)
+    return torch.cat(out, 1)
+
+
+def load_level_tables(enc: HashGridEncoding, tables) -> None:
+    """Give the encoding the per-level tables of :func:`reference_hash_encoding`."""
+    res = enc.resolution.long().tolist()
     with torch.no_grad():
-        rows = torch.arange(enc.table.shape[0], dtype=torch.float32)
-        enc.table.copy_(torch.stack([rows, -rows], 1))
-    return enc
+        for level, volume in enumerate(enc.volumes):  # dense levels: row i + j(R+1) + k(R+1)^2 -> volume[k, j, i]
+            n = res[level] + 1
+            volume.copy_(tables[level][: n**3].T.reshape(1, -1, n, n, n))
+        if enc.table is not None:
+            enc.table.copy_(torch.cat(tables[len(enc.volumes):]))
 
 
-def test_hashgrid_dense_level_vertices_read_distinct_rows_without_collision():
+def test_hashgrid_matches_the_plain_instant_ngp_encoding_with_dense_and_hashed_levels():
+    torch.manual_seed(0)
+    enc = HashGridEncoding(levels=5, features=2, log2_table_size=10, base_resolution=4, max_resolution=64)
+    res = enc.resolution.long().tolist()
+    assert len(enc.volumes) == 2 and enc.table.shape == (3 * 1024, 2)  # 4, 8 dense (<= 1024 vertices); 16.. hashed
+    tables = [torch.randn(1024, 2) for _ in res]
+    load_level_tables(enc, tables)
+    x = torch.rand(500, 3)
+    x[:5] = torch.tensor([[0.0, 0, 0], [1, 1, 1], [1, 0.5, 0.5], [0.25, 0.5, 0.75], [0.999, 0.001, 0.5]])
+    with torch.no_grad():
+        torch.testing.assert_close(enc(x), reference_hash_encoding(x, res, tables, 1024), atol=1e-5, rtol=1e-5)
+
+
+def test_hashgrid_table_gradient_matches_the_plain_encoding():
+    torch.manual_seed(1)
+    enc = HashGridEncoding(levels=3, features=3, log2_table_size=8, base_resolution=4, max_resolution=32)
+    res = enc.resolution.long().tolist()
+    tables = [torch.randn(256, 3) for _ in res]
+    load_level_tables(enc, tables)
+    x, g = torch.rand(200, 3), torch.randn(200, 9)
+    (enc(x) * g).sum().backward()
+    ref = [t.clone().requires_grad_(True) for t in tables]
+    (reference_hash_encoding(x, res, ref, 256) * g).sum().backward()
+    hashed = len(enc.volumes)
+    torch.testing.assert_close(enc.table.grad, torch.cat([t.grad for t in ref[hashed:]]), atol=1e-5, rtol=1e-5)
+
+
+def test_hashed_trilinear_gradcheck():
+    from open3d_pnerf.fields.encodings import _HashedTrilinear
+
+    g = torch.Generator().manual_seed(0)
+    table = torch.randn(40, 2, dtype=torch.float64, generator=g, requires_grad=True)
+    rows = torch.randint(0, 40, (6, 2, 8), generator=g)  # repeated rows accumulate
+    weights = torch.rand(6, 2, 8, dtype=torch.float64, generator=g)
+    assert torch.autograd.gradcheck(lambda t: _HashedTrilinear.apply(t, rows, weights), (table,))
+
+
+def test_hashgrid_dense_level_vertices_read_their_own_volume_entries():
     res = 16
-    enc = dense_level_encoding(res)
-    i, j, k = torch.meshgrid(*[torch.arange(res)] * 3, indexing="ij")
-    ijk = torch.stack([i, j, k], -1).reshape(-1, 3)
+    enc = HashGridEncoding(levels=1, features=2, log2_table_size=13, base_resolution=res, max_resolution=res)
+    assert len(enc.volumes) == 1 and enc.table is None  # (16 + 1)^3 <= 2^13: stored densely
+    with torch.no_grad():
+        enc.volumes[0].normal_()
+    ijk = torch.stack(torch.meshgrid(*[torch.arange(res + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
     with torch.no_grad():
         out = enc(ijk.float() / res)  # exact vertices (res is a power of two)
-    rows = out[:, 0]
-    torch.testing.assert_close(out[:, 1], -rows)
-    # the dense row of vertex (i, j, k) is i + j (R+1) + k (R+1)^2 ...
-    expected = ijk[:, 0] + ijk[:, 1] * (res + 1) + ijk[:, 2] * (res + 1) ** 2
-    torch.testing.assert_close(rows, expected.float())
-    # ... so different vertices never share a row
-    assert rows.unique().numel() == ijk.shape[0]
+    vol = enc.volumes[0][0]  # (F, z, y, x)
+    torch.testing.assert_close(out, vol[:, ijk[:, 2], ijk[:, 1], ijk[:, 0]].T)
 
 
 def test_hashgrid_interpolation_is_trilinear_and_continuous():
     torch.manual_seed(0)
     enc = HashGridEncoding(levels=3, features=2, log2_table_size=10, base_resolution=4, max_resolution=64)
-    assert not bool(enc.dense[-1])  # the finest level is hashed
+    assert enc.table is not None and len(enc.volumes) == 1  # 4 is dense; 16 and 64 are hashed
     with torch.no_grad():
-        enc.table.normal_()
+        for p in enc.parameters():
+            p.normal_()
         # continuity across cell faces of every level (0.5 is a face of all three grids)
         x = torch.rand(50, 3)
         x[:, 0] = 0.5
@@ -162,18 +226,19 @@ def test_hashgrid_output_dim_and_gradients():
     out = enc(x)
     assert out.shape == (33, 12)
     (out * torch.randn_like(out)).sum().backward()
-    assert enc.table.grad is not None and enc.table.grad.abs().sum() > 0
-    # each point touches at most 8 rows per level
-    assert (enc.table.grad.abs().sum(1) > 0).sum() <= 33 * 8 * 4
+    for p in enc.parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0
+    # each point touches at most 8 rows per hashed level
+    hashed = enc.levels - len(enc.volumes)
+    assert (enc.table.grad.abs().sum(1) > 0).sum() <= 33 * 8 * hashed
 
 
 def test_hashgrid_accepts_points_on_the_upper_box_faces():
-    # res = 31: (31 + 1)^3 = 2^15 exactly fills the table, so the level is dense
-    enc = HashGridEncoding(levels=1, features=2, log2_table_size=15, base_resolution=31, max_resolution=31)
-    assert bool(enc.dense[0])
-    x = torch.tensor([[1.0, 1.0, 1.0], [1.0, 0.5, 0.5], [0.3, 0.2, 1.0]])
-    out = enc(x)  # points on (or beyond, after clamping) the max faces of the scene box
-    assert out.shape == (3, 2) and torch.isfinite(out).all()
+    for size, res in ((15, 31), (10, 64)):  # (31 + 1)^3 = 2^15 exactly fills the table: dense; 64: hashed
+        enc = HashGridEncoding(levels=1, features=2, log2_table_size=size, base_resolution=res, max_resolution=res)
+        x = torch.tensor([[1.0, 1.0, 1.0], [1.0, 0.5, 0.5], [0.3, 0.2, 1.0], [1.2, -0.1, 0.5]])
+        out = enc(x)  # points on (or beyond, after clamping) the max faces of the scene box
+        assert out.shape == (4, 2) and torch.isfinite(out).all()
 
 
 # -- dense grid ------------------------------------------------------------------------------

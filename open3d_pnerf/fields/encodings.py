@@ -14,19 +14,25 @@ _PRIMES = (1, 2654435761, 805459861)
 class HashGridEncoding(nn.Module):
     """Multi-resolution hash grid (Instant-NGP) with trilinear interpolation.
 
-    Input x: (B, 3) in [0, 1]. Output: (B, levels * features). All levels share one
-    table; the corner indices of all levels are gathered with a single ``index_select``
-    (measured faster on CPU than one gather per level). Coarse levels whose grid fits in
-    the table are indexed densely (no collisions), finer ones by spatial hash.
+    Input x: (B, 3) in [0, 1]. Output: (B, levels * features), level by level. Level l has
+    R_l = floor(base_resolution * growth^l) cells per axis, growth set so that the last
+    level has max_resolution. A level whose (R + 1)^3 vertices fit in a table of
+    2^log2_table_size rows is stored densely, as a (features, R + 1, R + 1, R + 1) volume
+    read with ``grid_sample`` (fused kernels); the finer levels share one table of
+    2^log2_table_size rows each, indexed by the spatial hash of the cell corners and
+    interpolated by one fused gather (:class:`_HashedTrilinear`). This is Instant-NGP's
+    encoding (its coarse levels are indexed densely too) laid out for speed on a CPU:
+    measured 1.3x faster than gathering every level from the table, and with 8 levels up
+    to 2048 as fast per sample as the dense 16..192 grids of :class:`DenseGridEncoding`.
     """
 
     def __init__(
         self,
-        levels: int = 16,
+        levels: int = 8,
         features: int = 2,
         log2_table_size: int = 19,
         base_resolution: int = 16,
-        max_resolution: int = 1024,
+        max_resolution: int = 2048,
     ):
         super().__init__()
         self.levels, self.features = levels, features
@@ -34,30 +40,70 @@ class HashGridEncoding(nn.Module):
         growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(levels - 1, 1))
         res = [int(math.floor(base_resolution * growth**level)) for level in range(levels)]
         self.register_buffer("resolution", torch.tensor(res, dtype=torch.float32), persistent=False)
-        self.register_buffer("dense", torch.tensor([(r + 1) ** 3 <= self.table_size for r in res]), persistent=False)
-        self.register_buffer("offset", torch.arange(levels) * self.table_size, persistent=False)
+        dense = [r for r in res if (r + 1) ** 3 <= self.table_size]
+        hashed = res[len(dense):]
+        self.volumes = nn.ParameterList(
+            nn.Parameter(torch.empty(1, features, r + 1, r + 1, r + 1).uniform_(-1e-4, 1e-4)) for r in dense
+        )
+        self.register_buffer("hashed_resolution", torch.tensor(hashed, dtype=torch.float32), persistent=False)
+        self.register_buffer("offset", torch.arange(len(hashed)) * self.table_size, persistent=False)
         self.register_buffer("primes", torch.tensor(_PRIMES), persistent=False)
-        self.table = nn.Parameter(torch.empty(levels * self.table_size, features).uniform_(-1e-4, 1e-4))
+        if hashed:
+            self.table = nn.Parameter(torch.empty(len(hashed) * self.table_size, features).uniform_(-1e-4, 1e-4))
+        else:
+            self.register_parameter("table", None)
 
     @property
     def out_dim(self) -> int:
         return self.levels * self.features
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        pos = x.clamp(0, 1)[:, None, :] * self.resolution[None, :, None]  # (B, L, 3)
-        base = pos.floor().clamp(max=self.resolution[None, :, None] - 1)  # x = 1 uses the last cell
+        x = x.clamp(0, 1)
+        parts = []
+        if len(self.volumes):
+            g = (x * 2 - 1).view(1, -1, 1, 1, 3)  # align_corners: vertex i of R + 1 at i / R
+            parts += [nn.functional.grid_sample(v, g, mode="bilinear", align_corners=True).view(self.features, -1)
+                      for v in self.volumes]
+            parts = [torch.cat(parts, 0).T]
+        if self.table is not None:
+            rows, weights = self.hashed_corners(x)
+            parts.append(_HashedTrilinear.apply(self.table, rows, weights).reshape(x.shape[0], -1))
+        return torch.cat(parts, 1)
+
+    def hashed_corners(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Table rows (B, L, 8) of the 8 cell corners of points x (B, 3) in [0, 1] on the L
+        hashed levels, and their trilinear weights (B, L, 8); corner c = 4 dz + 2 dy + dx."""
+        res = self.hashed_resolution[None, :, None]
+        pos = x[:, None, :] * res  # (B, L, 3)
+        base = pos.floor().clamp(max=res - 1)  # x = 1 uses the last cell
         frac = pos - base
-        lo_hi = torch.stack([base.long(), base.long() + 1], -1)  # (B, L, 3, 2)
-        res1 = self.resolution.long() + 1
-        dense = lo_hi * torch.stack([torch.ones_like(res1), res1, res1 * res1], -1)[None, :, :, None]
-        hashed = lo_hi * self.primes[:, None]
-        # combine the per-axis terms of the 8 corners by broadcasting over (z, y, x) axes
-        dense_idx = _corners(dense, torch.add)
-        hashed_idx = _corners(hashed, torch.bitwise_xor) & (self.table_size - 1)
-        flat = torch.where(self.dense[None, :, None], dense_idx, hashed_idx) + self.offset[None, :, None]
-        feats = self.table.index_select(0, flat.reshape(-1)).view(*flat.shape, self.features)
-        w = _corners(torch.stack([1 - frac, frac], -1), torch.mul)  # (B, L, 8)
-        return (feats * w[..., None]).sum(2).reshape(x.shape[0], -1)
+        lo_hi = torch.stack([base.long(), base.long() + 1], -1) * self.primes[:, None]  # (B, L, 3, 2)
+        rows = _corners(lo_hi, torch.bitwise_xor) & (self.table_size - 1)
+        weights = _corners(torch.stack([1 - frac, frac], -1), torch.mul)
+        return rows + self.offset[None, :, None], weights
+
+
+class _HashedTrilinear(torch.autograd.Function):
+    """out (B, L, F) = sum_c weights[b, l, c] * table[rows[b, l, c]]; gradient for the table only.
+
+    One gather forward and one ``index_add_`` backward, without autograd keeping the
+    gathered (B, L, 8, F) corner features or differentiating the weights.
+    """
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        corners = table.index_select(0, rows.reshape(-1)).view(*rows.shape, table.shape[1])
+        ctx.save_for_backward(rows, weights)
+        ctx.table_rows = table.shape[0]
+        return (corners * weights[..., None]).sum(2)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        rows, weights = ctx.saved_tensors
+        per_corner = (weights[..., None] * grad[:, :, None, :]).reshape(-1, grad.shape[-1])
+        grad_table = torch.zeros(ctx.table_rows, grad.shape[-1], dtype=grad.dtype, device=grad.device)
+        grad_table.index_add_(0, rows.reshape(-1), per_corner)
+        return grad_table, None, None
 
 
 def _corners(terms: torch.Tensor, combine) -> torch.Tensor:

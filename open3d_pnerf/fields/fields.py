@@ -67,7 +67,7 @@ class EncodedField(Field):
 
 
 class GridField(EncodedField):
-    """Multi-resolution dense grids (the fast CPU default): resolutions per level, features each."""
+    """Multi-resolution dense grids: resolutions per level, features each."""
 
     def __init__(self, aabb, resolutions=(16, 32, 64, 128, 256), features: int = 2, **heads):
         super().__init__(aabb, DenseGridEncoding(resolutions, features), **heads)
@@ -76,7 +76,7 @@ class GridField(EncodedField):
 class HashGridField(EncodedField):
     """Instant-NGP multi-resolution hash grid (levels x features, 2^log2_table_size per level)."""
 
-    def __init__(self, aabb, levels=16, features=2, log2_table_size=19, max_resolution=1024, **heads):
+    def __init__(self, aabb, levels=8, features=2, log2_table_size=19, max_resolution=2048, **heads):
         super().__init__(aabb, HashGridEncoding(levels, features, log2_table_size, 16, max_resolution), **heads)
 
 
@@ -118,5 +118,5 @@ FIELDS = {"grid": GridField, "hashgrid": HashGridField, "vanilla": VanillaNeRFFi
 
 
 def make_field(name: str, aabb, **kwargs) -> Field:
-    """Build a field by name: 'grid' (fast CPU default), 'hashgrid' or 'vanilla' (the paper's MLP)."""
+    """Build a field by name: 'hashgrid' (the default), 'grid' or 'vanilla' (the paper's MLP)."""
     return FIELDS[name](aabb, **kwargs)
