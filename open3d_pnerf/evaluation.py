@@ -111,7 +111,8 @@ def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = Non
 
     Renders at the training resolution (or `scale` of the sequence). Each item is a dict:
     index (frame), color (H, W, 3) in [0, 1] on the depth grid, depth (H, W) sensor z-depth
-    m, model (Reconstruction.render output), tsdf (TSDFVolume.render output or None).
+    m, model (Reconstruction.render output at the frame's own exposure), tsdf
+    (TSDFVolume.render output or None).
     """
     scale = scale or recon.config.image_scale
     seq = sequence.select(recon.holdout_indices)
@@ -121,7 +122,7 @@ def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = Non
         frame = seq[k]
         yield {
             "index": int(i), "color": seq.color_on_depth_grid(frame.color) / 255.0, "depth": frame.depth,
-            "model": recon.render(recon.poses[i], seq.intrinsic),
+            "model": recon.render(recon.poses[i], seq.intrinsic, frame=int(i)),
             "tsdf": None if tsdf is None else tsdf.render(recon.poses[i], K, w, h),
         }
 

@@ -37,6 +37,7 @@ from .export import (
 )
 from .fields import make_field
 from .rendering import Rays, make_rays
+from .rendering.exposure import interpolate_gains
 from .targets import DepthTargets, check_covariances, depth_targets
 from .training import RayBatcher, Trainer, read_checkpoint, render_field, safe_torch_load, sampling_of
 
@@ -103,11 +104,14 @@ class Reconstruction:
     input sequence; train_indices / holdout_indices say which trained. intrinsic is the
     training-resolution ``o3d.camera.PinholeCameraIntrinsic``. depth_sigma_scale turns the
     model's depth spread into a calibrated 1-sigma error (see calibrate_depth_sigma).
+    color_gains (N, 3): each frame's camera exposure as per-channel gains on the rendered
+    colour (learned for training frames, interpolated in time for the others; ones without
+    exposure compensation); see :meth:`render`.
     """
 
     def __init__(self, field, config: ReconstructionConfig, poses, covariances, intrinsic, aabb,
                  train_indices, holdout_indices, timestamps=None, mesh=None, point_cloud=None,
-                 point_sigma=None, stats=None, depth_sigma_scale: float = 1.0):
+                 point_sigma=None, stats=None, depth_sigma_scale: float = 1.0, color_gains=None):
         self.field = field
         self.config = config
         self.poses = np.asarray(poses, np.float64)
@@ -122,6 +126,7 @@ class Reconstruction:
         self.point_sigma = point_sigma
         self.stats = stats or {}
         self.depth_sigma_scale = float(depth_sigma_scale)
+        self.color_gains = np.ones((len(self.poses), 3)) if color_gains is None else np.asarray(color_gains, np.float64)
 
     @property
     def device(self) -> torch.device:
@@ -131,10 +136,13 @@ class Reconstruction:
         mesh = f"{len(self.mesh.triangles)} triangles" if self.mesh is not None else "no mesh"
         return f"Reconstruction({len(self.poses)} frames, {len(self.train_indices)} trained, {mesh})"
 
-    def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None, chunk: int = 2048) -> dict:
+    def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None, chunk: int = 2048,
+               frame: int | None = None) -> dict:
         """Render the field from a camera-to-world pose (4, 4).
 
         intrinsic: an ``o3d.camera.PinholeCameraIntrinsic`` (default: the training one).
+        frame: index of one of the reconstruction's frames whose camera exposure the colour
+        should have (``color_gains[frame]``); None gives the training frames' average exposure.
         Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m,
         depth_std (H, W) m (the spread of the model's depth distribution along each ray,
         times depth_sigma_scale: a calibrated 1-sigma error), opacity (H, W) in [0, 1].
@@ -144,6 +152,10 @@ class Reconstruction:
         v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
         out = self._render_pixels(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float(), chunk)
         out["depth_std"] *= self.depth_sigma_scale
+        if frame is not None:
+            if not (isinstance(frame, (int, np.integer)) and 0 <= frame < len(self.poses)):
+                raise InputError(f"frame must be a frame index in [0, {len(self.poses)}), got {frame!r}")
+            out["color"] = np.clip(out["color"] * self.color_gains[frame].astype(np.float32), 0, 1)
         return {k: a.reshape(h, w, *a.shape[1:]) for k, a in out.items()}
 
     def _render_pixels(self, pose, intrinsic, u: torch.Tensor, v: torch.Tensor, chunk: int = 2048) -> dict:
@@ -255,6 +267,7 @@ class Reconstruction:
             d / "reconstruction.json": lambda p: Path(p).write_text(json.dumps(meta, indent=1)),
             d / "poses.npy": lambda p: np.save(p, self.poses),
             d / "covariances.npy": lambda p: np.save(p, self.covariances),
+            d / "color_gains.npy": lambda p: np.save(p, self.color_gains),
             d / "trajectory_tum.txt": lambda p: write_tum_trajectory(p, self.poses, self.timestamps),
             d / "trajectory.log": lambda p: write_log_trajectory(p, self.poses),
         }
@@ -307,9 +320,12 @@ class Reconstruction:
             raise CheckpointError(f"{d / 'model.pt'}: weights do not match the config ({exc})") from None
         mesh = _read_ply(d / "mesh.ply", lambda p: o3d.io.read_triangle_mesh(str(p)))
         cloud, sigma = _read_ply(d / "point_cloud.ply", read_point_cloud_ply) or (None, None)
+        gains = _load_array(d / "color_gains.npy", (n, 3)) if (d / "color_gains.npy").is_file() else None
+        if gains is not None and not (gains > 0).all():
+            raise CheckpointError(f"{d / 'color_gains.npy'}: colour gains must be > 0")
         return cls(field, config, _load_array(d / "poses.npy", (n, 4, 4)), _load_array(d / "covariances.npy", (n, 6, 6)),
                    intr, aabb, *indices, timestamps, mesh, cloud, sigma, meta.get("stats"),
-                   float(meta.get("depth_sigma_scale", 1.0)))
+                   float(meta.get("depth_sigma_scale", 1.0)), gains)
 
 
 def _read_meta(path: Path) -> dict:
@@ -463,6 +479,11 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
     try:
         train_stats = trainer.train()
         history = trainer.history
+        gains = np.ones((n, 3))
+        if trainer.exposure is not None:  # held-out frames: the exposure of the training frames around them
+            gains[train_idx] = trainer.exposure.gains().detach().double().cpu().numpy()
+            times = rgbd_sequence.timestamps
+            gains[hold_idx] = interpolate_gains(times[train_idx], gains[train_idx], times[hold_idx])
     finally:
         targets_summary = targets.summary()
         if storage is not None:  # the model has learned them; do not leave gigabytes behind
@@ -477,7 +498,7 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
     recon = Reconstruction(field, config, poses, covariances, train_seq.intrinsic, aabb, train_idx, hold_idx,
                            rgbd_sequence.timestamps,
                            stats={"training": train_stats, "history": history, "targets": targets_summary,
-                                  "timings": timings})
+                                  "timings": timings}, color_gains=gains)
     if not dist.is_main:  # rank 0 calibrates and exports
         stages.close()
         return recon

@@ -22,10 +22,29 @@ from .distributed import DistributedContext
 from .errors import CheckpointError, ConfigError, TrainingError
 from .losses import LossGains, total_loss
 from .pose_refinement import PoseCorrections
-from .rendering import BatchShare, SamplingConfig, make_rays, render_rays
+from .rendering import BatchShare, Rays, SamplingConfig, make_rays, render_rays
+from .rendering.exposure import ExposureGains
 from .targets import DepthTargets, ray_norms
 
 CHECKPOINT_VERSION = 1
+
+
+@dataclasses.dataclass
+class RayBatch:
+    """R training rays with what they saw: rgb (R, 3) in [0, 1], depth target mean and sigma
+    (R,) ray-distance metres (NaN = none), and frames (R,) the index of each ray's frame."""
+
+    rays: Rays
+    rgb: torch.Tensor
+    mean: torch.Tensor
+    sigma: torch.Tensor
+    frames: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.rays)
+
+    def __getitem__(self, index) -> "RayBatch":
+        return RayBatch(self.rays[index], self.rgb[index], self.mean[index], self.sigma[index], self.frames[index])
 
 
 class RayBatcher:
@@ -75,8 +94,8 @@ class RayBatcher:
             mean = sigma = None
         self.cache[i] = (color, mean, sigma)
 
-    def sample(self, n: int, generator: torch.Generator):
-        """n random rays: (Rays, rgb (n, 3), target mean and sigma (n,) ray-distance, NaN = none)."""
+    def sample(self, n: int, generator: torch.Generator) -> RayBatch:
+        """n random rays of the cached frames, with their colours, depth targets and frames."""
         self.draws += 1
         if len(self.cache) < len(self.sequence) and self.draws % self.refresh_every == 0:
             self.cache.popitem(last=False)
@@ -102,7 +121,7 @@ class RayBatcher:
         if self.pose_corrections is not None:
             poses = self.pose_corrections(poses, frame_ids)
         rays = make_rays(poses, self.K, u, v, self.aabb)
-        return rays, rgb, mean, sigma
+        return RayBatch(rays, rgb, mean, sigma, frame_ids)
 
     def state(self) -> dict:
         """Plain ints/dicts only, so checkpoints load with torch.load(weights_only=True)."""
@@ -144,11 +163,16 @@ class Trainer:
                               f"{self.dist.world_size} ranks need at least one ray each")
         self.eval_rays = eval_rays
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
+        self.exposure = (ExposureGains(len(batcher.sequence), batcher.device)
+                         if config.exposure_compensation else None)
         fused = dict(fused=True) if _fused_adam_ok(field) else {}
         groups = [{"params": list(field.parameters()), "lr": config.lr}]
         if self.pose_corrections is not None:
             groups.append({"params": list(self.pose_corrections.parameters()), "lr": config.pose_lr})
+        if self.exposure is not None:
+            groups.append({"params": list(self.exposure.parameters()), "lr": config.lr})
         self.optimizer = torch.optim.Adam(groups, eps=1e-15, **fused)
+        self._initial_lrs = [g["lr"] for g in groups]
         self.generator = torch.Generator().manual_seed(config.seed)
         self.sampling = sampling_of(config)
         self.step = 0
@@ -166,7 +190,7 @@ class Trainer:
 
     def _set_lr(self) -> None:
         decay = self.config.lr_final_factor ** self._progress_fraction()
-        for group, lr in zip(self.optimizer.param_groups, (self.config.lr, self.config.pose_lr)):
+        for group, lr in zip(self.optimizer.param_groups, self._initial_lrs):
             group["lr"] = lr * decay
 
     def _gains(self) -> LossGains:
@@ -182,19 +206,23 @@ class Trainer:
     # -- one step ------------------------------------------------------------------------
     def train_step(self) -> dict:
         """One optimiser step on `rays_per_batch` rays: {"loss": ..., "psnr": ...} of the whole batch."""
-        rays, rgb, mean, sigma = self.batcher.sample(self.config.rays_per_batch, self.generator)
+        batch = self.batcher.sample(self.config.rays_per_batch, self.generator)
         noise, whole = self.generator, {}
         if self.dist.enabled:  # every rank drew the same batch; render this rank's rows with the batch's noise
-            rows = self.dist.share(len(rays))
-            whole = {"n_rays": len(rays), "n_target": int(torch.isfinite(mean).sum())}
-            noise = BatchShare(self.generator, len(rays), rows.start, rows.stop)
-            rays, rgb, mean, sigma = rays[rows], rgb[rows], mean[rows], sigma[rows]
+            rows = self.dist.share(len(batch))
+            whole = {"n_rays": len(batch), "n_target": int(torch.isfinite(batch.mean).sum())}
+            noise = BatchShare(self.generator, len(batch), rows.start, rows.stop)
+            batch = batch[rows]
+        rgb, mean, sigma = batch.rgb, batch.mean, batch.sigma
         guide = self.config.loss != "photometric" and self.config.depth_guided_sampling
         fine, coarse = render_rays(
-            self.field, rays, self.sampling, mean if guide else None, sigma if guide else None,
+            self.field, batch.rays, self.sampling, mean if guide else None, sigma if guide else None,
             noise, with_coarse=self.config.coarse_loss,
         )
         renders = [fine] + ([coarse] if coarse is not None else [])
+        if self.exposure is not None:  # the colours as each ray's frame recorded them
+            renders = [dataclasses.replace(r, color=self.exposure(r.color, batch.frames)) for r in renders]
+            fine = renders[0]
         terms = total_loss(self.config.loss, renders, rgb, mean, sigma, self._gains(), **whole)
         loss = terms["loss"]
         if self.pose_corrections is not None:  # each rank adds its share of the prior
@@ -233,8 +261,8 @@ class Trainer:
         return stats[0], stats[1], int(stats[2])
 
     def _trained_parameters(self) -> list[torch.Tensor]:
-        """The field's parameters, then the pose corrections' (when poses are refined)."""
-        extra = list(self.pose_corrections.parameters()) if self.pose_corrections is not None else []
+        """The field's parameters, then the pose corrections' and exposure gains' (when used)."""
+        extra = [p for m in (self.pose_corrections, self.exposure) if m is not None for p in m.parameters()]
         return list(self.field.parameters()) + extra
 
     def _agree(self, elapsed: float) -> tuple[float, bool]:
@@ -337,6 +365,7 @@ class Trainer:
             "samples_seen": self.samples_seen,
             "field": self.field.state_dict(),
             **({"poses": self.pose_corrections.state_dict()} if self.pose_corrections is not None else {}),
+            **({"exposure": self.exposure.state_dict()} if self.exposure is not None else {}),
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "batcher": self.batcher.state(),
@@ -359,6 +388,8 @@ class Trainer:
             self.field.load_state_dict(state["field"])
             if self.pose_corrections is not None:
                 self.pose_corrections.load_state_dict(state["poses"])
+            if self.exposure is not None:
+                self.exposure.load_state_dict(state["exposure"])
             self.optimizer.load_state_dict(state["optimizer"])
             self.generator.set_state(state["generator"])
             self.batcher.restore(state["batcher"])

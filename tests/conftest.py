@@ -66,13 +66,13 @@ def plane_scene():
 
 def tiny_reconstruction(shift: float = 0.0):
     """An untrained Reconstruction of the plane scene's 3 frames with a small mesh and point cloud,
-    cheap to save and load. shift changes every saved file (poses, box, geometry, weights)."""
+    cheap to save and load. shift changes every saved file (poses, box, geometry, weights, gains)."""
     import torch
 
     from open3d_pnerf import Reconstruction, ReconstructionConfig
     from open3d_pnerf.reconstruction import build_field
 
-    config = ReconstructionConfig.preset("test", grid_resolutions=(8, 16), progress=False)
+    config = ReconstructionConfig.preset("test", field="grid", grid_resolutions=(8, 16), progress=False)
     aabb = np.array([[-1, -1, 0], [1, 1, 3]], np.float32) + shift
     field = build_field(config, aabb)
     with torch.no_grad():
@@ -85,4 +85,4 @@ def tiny_reconstruction(shift: float = 0.0):
     return Reconstruction(field, config, poses, covariances, plane_intrinsic(), aabb, [1, 2], [0],
                           mesh=o3d.geometry.TriangleMesh.create_box(0.1, 0.1, 0.1).translate((0, 0, shift)),
                           point_cloud=o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)),
-                          point_sigma=np.full(10, 0.01))
+                          point_sigma=np.full(10, 0.01), color_gains=np.full((3, 3), 1 + shift))

@@ -59,7 +59,7 @@ def test_a_crash_mid_save_leaves_the_previous_files_intact(tmp_path, monkeypatch
 
 def test_a_crash_mid_checkpoint_leaves_the_previous_checkpoint_intact(tmp_path, monkeypatch, plane_scene):
     seq, poses = plane_scene()
-    config = ReconstructionConfig.preset("test", grid_resolutions=(8, 16), progress=False, max_steps=2)
+    config = ReconstructionConfig.preset("test", field="grid", grid_resolutions=(8, 16), progress=False, max_steps=2)
     targets = depth_targets(seq, poses=poses, progress=False)
     field = build_field(config, scene_box(targets, poses, seq.K))
     trainer = Trainer(field, RayBatcher(seq, poses, targets, field.aabb, "cpu", config.seed), config,

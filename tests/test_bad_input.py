@@ -47,7 +47,7 @@ def pinhole(w=W, h=H, fx=30.0, fy=30.0, cx=15.5, cy=11.5):
 
 
 K = pinhole()
-CONFIG = ReconstructionConfig.preset("test", grid_resolutions=(8, 16), progress=False)
+CONFIG = ReconstructionConfig.preset("test", field="grid", grid_resolutions=(8, 16), progress=False)
 
 
 # -- builders of good inputs -------------------------------------------------------------------
@@ -394,6 +394,10 @@ CASES = [
          ("poses.npy", "missing")),
     Case("saved-poses-wrong-shape", edit(saved, lambda r: np.save(r / "poses.npy", POSES[:2])), Reconstruction.load,
          CheckpointError, ("poses.npy", "(3, 4, 4)")),
+    Case("saved-color-gains-wrong-shape", edit(saved, lambda r: np.save(r / "color_gains.npy", np.ones((2, 3)))),
+         Reconstruction.load, CheckpointError, ("color_gains.npy", "(3, 3)")),
+    Case("saved-color-gains-negative", edit(saved, lambda r: np.save(r / "color_gains.npy", -np.ones((3, 3)))),
+         Reconstruction.load, CheckpointError, ("color_gains.npy", "> 0")),
     Case("saved-mesh-corrupt", edit(saved, lambda r: (r / "mesh.ply").write_bytes(b"ply\ngarbage")), Reconstruction.load,
          CheckpointError, ("mesh.ply", "unreadable")),
     # training checkpoints: rejected before any tracking or training

@@ -119,7 +119,8 @@ def scene():
     cfg = ReconstructionConfig.preset("test", progress=False)
     field = build_field(cfg, aabb)
     batcher = RayBatcher(seq, seq.gt_poses, targets, field.aabb, "cpu", seed=0)
-    rays, rgb, mean, sigma = batcher.sample(64, torch.Generator().manual_seed(0))
+    batch = batcher.sample(64, torch.Generator().manual_seed(0))
+    rays, rgb, mean, sigma = batch.rays, batch.rgb, batch.mean, batch.sigma
     assert 0 < torch.isfinite(mean).sum() < 64  # rays with and without depth targets
     return field, rays, rgb, mean, sigma
 

@@ -320,6 +320,28 @@ def test_render_returns_images_of_the_training_size(recon):
 
 
 @pytest.mark.slow
+def test_exposure_gains_follow_the_cameras_auto_exposure(recon):
+    # TUM's camera darkens as fr1/xyz goes on: the sample's frames 5-7 record the same desk
+    # ~12% darker than frame 1 (measured by warping frames onto each other with depth and poses)
+    g = recon.color_gains
+    assert g.shape == (11, 3) and np.isfinite(g).all() and (g > 0).all()
+    assert g[[5, 6, 7]].mean() < 0.95 * g[1].mean()
+    # held-out frames take the exposure of the training frames around them
+    from open3d_pnerf.rendering.exposure import interpolate_gains
+
+    t = recon.timestamps
+    np.testing.assert_allclose(g[recon.holdout_indices],
+                               interpolate_gains(t[recon.train_indices], g[recon.train_indices], t[recon.holdout_indices]))
+    quarter = scale_intrinsic(recon.intrinsic, 0.25)
+    average, as_seen = recon.render(recon.poses[5], quarter), recon.render(recon.poses[5], quarter, frame=5)
+    np.testing.assert_allclose(as_seen["color"], np.clip(average["color"] * g[5].astype(np.float32), 0, 1), atol=1e-6)
+    np.testing.assert_array_equal(as_seen["depth"], average["depth"])
+    for bad in (11, -1, 2.0):
+        with pytest.raises(InputError, match="frame must be a frame index"):
+            recon.render(recon.poses[5], quarter, frame=bad)
+
+
+@pytest.mark.slow
 def test_training_beats_an_untrained_model_on_held_out_frames(recon, sample):
     untrained = Reconstruction(build_field(recon.config, recon.aabb), recon.config, recon.poses,
                                recon.covariances, recon.intrinsic, recon.aabb, recon.train_indices,
@@ -340,7 +362,7 @@ def test_training_beats_an_untrained_model_on_held_out_frames(recon, sample):
 def test_save_writes_every_file(saved, recon):
     names = {p.name for p in saved.iterdir()}
     expected = {"mesh.ply", "point_cloud.ply", "model.pt", "reconstruction.json", "poses.npy",
-                "covariances.npy", "trajectory_tum.txt", "trajectory.log"}
+                "covariances.npy", "color_gains.npy", "trajectory_tum.txt", "trajectory.log"}
     assert expected <= names
     assert not [n for n in names if n.startswith(".")]  # no temporary files left
     meta = json.loads((saved / "reconstruction.json").read_text())
@@ -367,6 +389,7 @@ def test_load_renders_the_same_image(saved, recon):
     np.testing.assert_allclose(loaded.aabb, recon.aabb)
     np.testing.assert_array_equal(loaded.holdout_indices, recon.holdout_indices)
     np.testing.assert_allclose(loaded.poses, recon.poses)
+    np.testing.assert_allclose(loaded.color_gains, recon.color_gains)
     assert len(loaded.point_cloud.points) == len(recon.point_cloud.points)
     np.testing.assert_allclose(loaded.point_sigma, recon.point_sigma, rtol=1e-6)
     K_a = np.asarray(loaded.intrinsic.intrinsic_matrix)
@@ -403,7 +426,7 @@ def test_load_rejects_broken_folders(saved, tmp_path):
         Reconstruction.load(d)
     shutil.copy(saved / "reconstruction.json", d / "reconstruction.json")
     meta = json.loads((d / "reconstruction.json").read_text())
-    meta["config"]["grid_resolutions"] = [16, 32]  # weights no longer match the config
+    meta["config"]["hash_levels"] = 4  # weights no longer match the config
     (d / "reconstruction.json").write_text(json.dumps(meta))
     with pytest.raises(CheckpointError, match="do not match"):
         Reconstruction.load(d)

@@ -178,8 +178,9 @@ def pixels_of(rays: Rays, frames: np.ndarray, poses: np.ndarray, K: np.ndarray):
 def test_ray_batcher_returns_rays_colours_and_targets_of_the_drawn_pixels(scene):
     seq, targets, aabb = scene
     batcher = RayBatcher(seq, seq.gt_poses, targets, torch.as_tensor(aabb), "cpu", seed=0)
-    rays, rgb, mean, sigma = batcher.sample(500, torch.Generator().manual_seed(0))
-    assert isinstance(rays, Rays) and len(rays) == 500
+    batch = batcher.sample(500, torch.Generator().manual_seed(0))
+    rays, rgb, mean, sigma = batch.rays, batch.rgb, batch.mean, batch.sigma
+    assert isinstance(rays, Rays) and len(rays) == 500 and len(batch) == 500
     assert rays.origins.shape == (500, 3) and rays.directions.shape == (500, 3)
     assert rgb.shape == (500, 3) and mean.shape == (500,) and sigma.shape == (500,)
     assert (rgb >= 0).all() and (rgb <= 1).all()
@@ -211,8 +212,10 @@ def test_ray_batcher_returns_rays_colours_and_targets_of_the_drawn_pixels(scene)
 def test_ray_batcher_targets_lie_on_the_observed_surface(scene):
     seq, targets, aabb = scene
     batcher = RayBatcher(seq, seq.gt_poses, targets, torch.as_tensor(aabb), "cpu", seed=0)
-    rays, _, mean, _ = batcher.sample(500, torch.Generator().manual_seed(1))
+    batch = batcher.sample(500, torch.Generator().manual_seed(1))
+    rays, mean = batch.rays, batch.mean
     frames = frame_of_origins(rays.origins, seq.gt_poses)
+    np.testing.assert_array_equal(batch.frames.numpy(), frames)  # each ray knows its frame
     u, v, _ = pixels_of(rays, frames, seq.gt_poses, seq.K)
     valid = np.isfinite(mean.numpy())
     K = seq.K
@@ -227,7 +230,8 @@ def test_ray_batcher_targets_lie_on_the_observed_surface(scene):
 def test_ray_batcher_without_targets_gives_nan_targets(scene):
     seq, _, aabb = scene
     batcher = RayBatcher(seq, seq.gt_poses, None, torch.as_tensor(aabb), "cpu", seed=0)
-    rays, rgb, mean, sigma = batcher.sample(64, torch.Generator().manual_seed(0))
+    batch = batcher.sample(64, torch.Generator().manual_seed(0))
+    rays, rgb, mean, sigma = batch.rays, batch.rgb, batch.mean, batch.sigma
     assert len(rays) == 64 and rgb.shape == (64, 3)
     assert torch.isnan(mean).all() and torch.isnan(sigma).all()
 
@@ -242,7 +246,7 @@ def test_ray_batcher_cache_is_bounded_and_rotates(scene):
     cached_history = []
     for draw in range(1, 37):
         before = list(batcher.cache)
-        rays, *_ = batcher.sample(64, g)
+        rays = batcher.sample(64, g).rays
         assert len(batcher.cache) == 3
         frames = set(frame_of_origins(rays.origins, seq.gt_poses).tolist())
         assert frames <= set(batcher.cache)  # rays come from decoded frames only
@@ -372,7 +376,7 @@ def test_bad_checkpoints_raise_checkpoint_error(scene, tmp_path):
     with pytest.raises(CheckpointError, match="version"):
         trainer.load_checkpoint(tmp_path / "future.pt")
     # a checkpoint of another field configuration does not load into this one
-    other = make_trainer(scene, config(max_steps=1, grid_resolutions=(16, 32)))
+    other = make_trainer(scene, config(max_steps=1, hash_levels=4))
     with pytest.raises(CheckpointError, match="does not match"):
         other.load_checkpoint(good)
 
@@ -455,7 +459,7 @@ def test_training_on_cuda_draws_the_same_rays_as_on_cpu(scene):
     rays = []
     for device in ("cpu", "cuda"):
         batcher = RayBatcher(seq, seq.gt_poses, targets, torch.as_tensor(aabb, device=device), device, cfg.seed)
-        rays.append(batcher.sample(64, torch.Generator().manual_seed(0))[0].origins.cpu())
+        rays.append(batcher.sample(64, torch.Generator().manual_seed(0)).rays.origins.cpu())
     torch.testing.assert_close(rays[0], rays[1])
     cuda = cfg.replace(device="cuda")
     field = build_field(cuda, aabb)
