@@ -268,6 +268,7 @@ def cmd_render(args) -> int:
     from .reconstruction import Reconstruction
 
     recon = Reconstruction.load(args.dir)
+    index = None
     if args.pose.isdigit():
         index = int(args.pose)
         if not 0 <= index < len(recon.poses):
@@ -278,7 +279,7 @@ def cmd_render(args) -> int:
         if not path.is_file():
             raise InputError(f"--pose {args.pose}: neither a frame index nor a 4x4 matrix text file")
         pose = np.loadtxt(path)
-    out = recon.render(pose)
+    out = recon.render(pose, frame=index)  # a frame's pose: with that frame's exposure
     target = Path(args.out)
     target.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(target), cv2.cvtColor((out["color"] * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
@@ -331,7 +332,7 @@ def cmd_evaluate(args) -> int:
 def _add_training_options(p):
     p.add_argument("--preset", default="fast", choices=["fast", "quality", "test"], help="configuration preset")
     p.add_argument("--loss", choices=["pnerf", "photometric", "dsnerf"], help="training loss (default pnerf)")
-    p.add_argument("--field", choices=["grid", "hashgrid", "vanilla"], help="scene field (default grid)")
+    p.add_argument("--field", choices=["grid", "hashgrid", "vanilla"], help="scene field (default hashgrid)")
     p.add_argument("--device", help="torch device: cpu, cuda, cuda:1 (default cpu)")
     p.add_argument("--max-steps", type=int, help="optimiser steps")
     p.add_argument("--time-budget", type=float, help="training time budget in seconds")
@@ -341,7 +342,7 @@ def _add_training_options(p):
     p.add_argument("--rays-per-batch", type=int,
                    help="rays per step (under torchrun: the whole batch, split between the ranks)")
     p.add_argument("--refine-poses", action="store_true",
-                   help="optimise the training poses with the field, held by their covariances")
+                   help="optimise the training poses with the field, held by their covariances (best with --field grid)")
     p.add_argument("--dist-backend", choices=["auto", "gloo", "nccl"],
                    help="under torchrun: torch.distributed backend (default auto: nccl on CUDA, gloo on CPU)")
     p.add_argument("--dist-timeout", type=float, metavar="SECONDS",
