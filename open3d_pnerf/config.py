@@ -19,8 +19,9 @@ class ReconstructionConfig:
     """"pnerf" (colour + depth-PDF + depth L1), "photometric" (colour only) or "dsnerf"."""
     field: str = "hashgrid"
     """"hashgrid" (Instant-NGP multi-resolution hash grid, 8 levels 16..2048: the sharpest
-    renders at equal time on a CPU), "grid" (dense grids 16..192: as fast, coarser, 3x the
-    memory) or "vanilla" (the paper's 8x256 MLP, slow, for comparison)."""
+    renders of dense sequences at equal time on a CPU), "grid" (dense grids 16..192: as fast,
+    coarser, 3x the memory; better with a few sparse views and for refine_poses) or "vanilla"
+    (the paper's 8x256 MLP, slow, for comparison)."""
     max_steps: int = 2000
     """Optimiser steps; the learning-rate schedule is laid over this many steps."""
     time_budget_s: float | None = None
