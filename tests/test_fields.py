@@ -137,20 +137,20 @@ def reference_hash_encoding(x: torch.Tensor, resolutions, tables, table_size: in
 
 def load_level_tables(enc: HashGridEncoding, tables) -> None:
     """Give the encoding the per-level tables of :func:`reference_hash_encoding`."""
-    res = enc.resolution.long().tolist()
+    res = enc.resolutions
     with torch.no_grad():
-        for level, volume in enumerate(enc.volumes):  # dense levels: row i + j(R+1) + k(R+1)^2 -> volume[k, j, i]
+        for level in range(enc.n_dense):  # dense levels: row i + j(R+1) + k(R+1)^2 -> volume[k, j, i]
             n = res[level] + 1
-            volume.copy_(tables[level][: n**3].T.reshape(1, -1, n, n, n))
+            enc.dense.grids[level].copy_(tables[level][: n**3].T.reshape(1, -1, n, n, n))
         if enc.table is not None:
-            enc.table.copy_(torch.cat(tables[len(enc.volumes):]))
+            enc.table.copy_(torch.cat(tables[enc.n_dense:]))
 
 
 def test_hashgrid_matches_the_plain_instant_ngp_encoding_with_dense_and_hashed_levels():
     torch.manual_seed(0)
     enc = HashGridEncoding(levels=5, features=2, log2_table_size=10, base_resolution=4, max_resolution=64)
-    res = enc.resolution.long().tolist()
-    assert len(enc.volumes) == 2 and enc.table.shape == (3 * 1024, 2)  # 4, 8 dense (<= 1024 vertices); 16.. hashed
+    res = enc.resolutions
+    assert enc.n_dense == 2 and enc.table.shape == (3 * 1024, 2)  # 4, 8 dense (<= 1024 vertices); 16.. hashed
     tables = [torch.randn(1024, 2) for _ in res]
     load_level_tables(enc, tables)
     x = torch.rand(500, 3)
@@ -162,14 +162,14 @@ def test_hashgrid_matches_the_plain_instant_ngp_encoding_with_dense_and_hashed_l
 def test_hashgrid_table_gradient_matches_the_plain_encoding():
     torch.manual_seed(1)
     enc = HashGridEncoding(levels=3, features=3, log2_table_size=8, base_resolution=4, max_resolution=32)
-    res = enc.resolution.long().tolist()
+    res = enc.resolutions
     tables = [torch.randn(256, 3) for _ in res]
     load_level_tables(enc, tables)
     x, g = torch.rand(200, 3), torch.randn(200, 9)
     (enc(x) * g).sum().backward()
     ref = [t.clone().requires_grad_(True) for t in tables]
     (reference_hash_encoding(x, res, ref, 256) * g).sum().backward()
-    hashed = len(enc.volumes)
+    hashed = enc.n_dense
     torch.testing.assert_close(enc.table.grad, torch.cat([t.grad for t in ref[hashed:]]), atol=1e-5, rtol=1e-5)
 
 
@@ -186,20 +186,20 @@ def test_hashed_trilinear_gradcheck():
 def test_hashgrid_dense_level_vertices_read_their_own_volume_entries():
     res = 16
     enc = HashGridEncoding(levels=1, features=2, log2_table_size=13, base_resolution=res, max_resolution=res)
-    assert len(enc.volumes) == 1 and enc.table is None  # (16 + 1)^3 <= 2^13: stored densely
+    assert enc.n_dense == 1 and enc.table is None  # (16 + 1)^3 <= 2^13: stored densely
     with torch.no_grad():
-        enc.volumes[0].normal_()
+        enc.dense.grids[0].normal_()
     ijk = torch.stack(torch.meshgrid(*[torch.arange(res + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
     with torch.no_grad():
         out = enc(ijk.float() / res)  # exact vertices (res is a power of two)
-    vol = enc.volumes[0][0]  # (F, z, y, x)
+    vol = enc.dense.grids[0][0]  # (F, z, y, x)
     torch.testing.assert_close(out, vol[:, ijk[:, 2], ijk[:, 1], ijk[:, 0]].T)
 
 
 def test_hashgrid_interpolation_is_trilinear_and_continuous():
     torch.manual_seed(0)
     enc = HashGridEncoding(levels=3, features=2, log2_table_size=10, base_resolution=4, max_resolution=64)
-    assert enc.table is not None and len(enc.volumes) == 1  # 4 is dense; 16 and 64 are hashed
+    assert enc.table is not None and enc.n_dense == 1  # 4 is dense; 16 and 64 are hashed
     with torch.no_grad():
         for p in enc.parameters():
             p.normal_()
@@ -210,7 +210,7 @@ def test_hashgrid_interpolation_is_trilinear_and_continuous():
         jump = (enc(x + e) - enc(x - e)).abs().max()
         assert jump < 1e-2
         # within a cell the encoding is linear along an axis: midpoint = mean of the ends
-        res = enc.resolution.long().tolist()
+        res = enc.resolutions
         for level, r in enumerate(res):
             a = (torch.floor(torch.rand(20, 3) * r) + 0.1) / r  # well inside one cell
             b = a + torch.tensor([0.8 / r, 0, 0])
@@ -229,7 +229,7 @@ def test_hashgrid_output_dim_and_gradients():
     for p in enc.parameters():
         assert p.grad is not None and p.grad.abs().sum() > 0
     # each point touches at most 8 rows per hashed level
-    hashed = enc.levels - len(enc.volumes)
+    hashed = enc.levels - enc.n_dense
     assert (enc.table.grad.abs().sum(1) > 0).sum() <= 33 * 8 * hashed
 
 

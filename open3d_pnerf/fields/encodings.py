@@ -17,13 +17,13 @@ class HashGridEncoding(nn.Module):
     Input x: (B, 3) in [0, 1]. Output: (B, levels * features), level by level. Level l has
     R_l = floor(base_resolution * growth^l) cells per axis, growth set so that the last
     level has max_resolution. A level whose (R + 1)^3 vertices fit in a table of
-    2^log2_table_size rows is stored densely, as a (features, R + 1, R + 1, R + 1) volume
-    read with ``grid_sample`` (fused kernels); the finer levels share one table of
+    2^log2_table_size rows is stored densely, as a :class:`DenseGridEncoding` level of R + 1
+    vertices per axis (fused ``grid_sample`` kernels); the finer levels share one table of
     2^log2_table_size rows each, indexed by the spatial hash of the cell corners and
     interpolated by one fused gather (:class:`_HashedTrilinear`). This is Instant-NGP's
-    encoding (its coarse levels are indexed densely too) laid out for speed on a CPU:
-    measured 1.3x faster than gathering every level from the table, and with 8 levels up
-    to 2048 as fast per sample as the dense 16..192 grids of :class:`DenseGridEncoding`.
+    encoding (its coarse levels are indexed densely too) laid out for speed on a CPU: with
+    8 levels up to 2048 it trains as fast per sample as the dense 16..192 grids
+    (benchmarks/bench_nerf.py). resolutions: the cells per axis of each level.
     """
 
     def __init__(
@@ -38,13 +38,10 @@ class HashGridEncoding(nn.Module):
         self.levels, self.features = levels, features
         self.table_size = 2**log2_table_size
         growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(levels - 1, 1))
-        res = [int(math.floor(base_resolution * growth**level)) for level in range(levels)]
-        self.register_buffer("resolution", torch.tensor(res, dtype=torch.float32), persistent=False)
-        dense = [r for r in res if (r + 1) ** 3 <= self.table_size]
-        hashed = res[len(dense):]
-        self.volumes = nn.ParameterList(
-            nn.Parameter(torch.empty(1, features, r + 1, r + 1, r + 1).uniform_(-1e-4, 1e-4)) for r in dense
-        )
+        self.resolutions = [int(math.floor(base_resolution * growth**level)) for level in range(levels)]
+        self.n_dense = sum((r + 1) ** 3 <= self.table_size for r in self.resolutions)  # resolutions grow
+        dense, hashed = self.resolutions[: self.n_dense], self.resolutions[self.n_dense:]
+        self.dense = DenseGridEncoding([r + 1 for r in dense], features) if dense else None
         self.register_buffer("hashed_resolution", torch.tensor(hashed, dtype=torch.float32), persistent=False)
         self.register_buffer("offset", torch.arange(len(hashed)) * self.table_size, persistent=False)
         self.register_buffer("primes", torch.tensor(_PRIMES), persistent=False)
@@ -59,12 +56,7 @@ class HashGridEncoding(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = x.clamp(0, 1)
-        parts = []
-        if len(self.volumes):
-            g = (x * 2 - 1).view(1, -1, 1, 1, 3)  # align_corners: vertex i of R + 1 at i / R
-            parts += [nn.functional.grid_sample(v, g, mode="bilinear", align_corners=True).view(self.features, -1)
-                      for v in self.volumes]
-            parts = [torch.cat(parts, 0).T]
+        parts = [self.dense(x)] if self.dense is not None else []
         if self.table is not None:
             rows, weights = self.hashed_corners(x)
             parts.append(_HashedTrilinear.apply(self.table, rows, weights).reshape(x.shape[0], -1))
@@ -117,10 +109,10 @@ class DenseGridEncoding(nn.Module):
     """Multi-resolution dense feature grids, trilinearly interpolated with ``grid_sample``.
 
     Input x: (B, 3) in [0, 1]. Output: (B, len(resolutions) * features). Each level is a
-    (features, R, R, R) volume; PyTorch's fused grid_sample kernels make this ~3x faster
-    than the hash grid on CPU (benchmarks/bench_nerf.py: 94k vs 29k training samples/s on
-    one core), at the cost of memory (192^3 x 2 floats = 57 MB for the finest level).
-    The coarse levels give the coarse-to-fine behaviour a single dense grid lacks.
+    (features, R, R, R) volume of R vertices per axis, vertex i at i / (R - 1); PyTorch's
+    fused grid_sample kernels make it fast on CPU, at the cost of memory (192^3 x 2 floats
+    = 57 MB for the finest level). The coarse levels give the coarse-to-fine behaviour a
+    single dense grid lacks. :class:`HashGridEncoding` stores its coarse levels this way.
     """
 
     def __init__(self, resolutions=(16, 32, 64, 128, 256), features: int = 2):
