@@ -64,8 +64,8 @@ class ReconstructionConfig:
     """Loss gains Kc, Kd, Kz (and the DS-NeRF gain)."""
     depth_gain_final_factor: float = 0.01
     """The PNeRF depth gains Kd and Kz decay exponentially over training to this fraction
-    of `gains` (1.0 = constant): geometry first, colour refined late (on TUM fr1/xyz at the `fast`
-    preset 0.01 gave 24.7-24.9 dB held-out PSNR over 3 seeds, 0.1 gave 24.6 in one run). Compare with
+    of `gains` (1.0 = constant): geometry first, colour refined late (0.01 was chosen over 0.1 in
+    exploratory runs on TUM fr1/xyz at the `fast` preset: same depth error). Compare with
     `gains={"density": 0.05, "depth": 0.05}, depth_gain_final_factor=1.0` (the old default)."""
     exposure_compensation: bool = True
     """Learn a colour gain per training frame and channel (the auto-exposure and white balance

@@ -322,7 +322,7 @@ def test_render_returns_images_of_the_training_size(recon):
 @pytest.mark.slow
 def test_exposure_gains_follow_the_cameras_auto_exposure(recon):
     # TUM's camera darkens as fr1/xyz goes on: the sample's frames 5-7 record the same desk
-    # ~12% darker than frame 1 (measured by warping frames onto each other with depth and poses)
+    # darker than frame 1
     g = recon.color_gains
     assert g.shape == (11, 3) and np.isfinite(g).all() and (g > 0).all()
     assert g[[5, 6, 7]].mean() < 0.95 * g[1].mean()

@@ -1,7 +1,7 @@
 """Per-frame camera exposure: frame i records gain_i * C of a rendered colour C, a gain per channel.
 
-Real RGB-D cameras change exposure and white balance as they move (the shared TUM fr1/xyz
-frames get up to 14% darker than the first, differently per channel). Without a model of it
+Real RGB-D cameras change exposure and white balance as they move (the TUM fr1/xyz camera
+darkens as the sequence goes on, differently per channel: tests/test_reconstruction.py). Without a model of it
 the field has to average the frames' exposures into one colour per point, or bend its
 geometry to fake the differences. The field learns the scene at the training frames'
 average exposure, and a learned gain per training frame and channel turns it into what that
