@@ -9,6 +9,7 @@ from .distributed import BACKENDS
 from .errors import ConfigError
 from .fields import FIELDS
 from .losses import LOSSES, LossGains
+from .targets import SensorNoise
 
 
 @dataclasses.dataclass
@@ -104,6 +105,10 @@ class ReconstructionConfig:
     point_noise_m: float = 2.0
     """Noise scale of the pose-graph covariances in tracking (see tracking.DEFAULT_POINT_NOISE_M:
     2.0 matches the covariances to the measured pose errors on TUM fr1/xyz)."""
+    depth_sigma_relative: float = SensorNoise.relative
+    """Systematic depth error of the sensor as a fraction of depth (SensorNoise.relative):
+    widens every depth target by relative * z in quadrature, after multi-view fusion
+    (calibration and registration errors are shared by all views). 0 = random noise only."""
     calibrate_depth_sigma: bool = True
     """After training, scale the model's depth spread so that 68.3% of training-view depth
     errors fall within 1 sigma (Reconstruction.calibrate_depth_sigma)."""
@@ -198,6 +203,7 @@ class ReconstructionConfig:
             ("checkpoint_every", count, "an int >= 1"),
             ("cache_frames", count, "an int >= 1"),
             ("point_noise_m", lambda v: number(v) and v > 0, "a number > 0"),
+            ("depth_sigma_relative", lambda v: number(v) and 0 <= v < 1, "a number in [0, 1)"),
             ("export_scale", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
             ("export_max_views", count, "an int >= 1"),
             ("mesh_voxel_size", lambda v: number(v) and v > 0, "a number > 0 (metres)"),

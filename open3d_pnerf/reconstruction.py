@@ -38,7 +38,7 @@ from .export import (
 from .fields import make_field
 from .rendering import Rays, make_rays
 from .rendering.exposure import interpolate_gains
-from .targets import DepthTargets, check_covariances, depth_targets
+from .targets import DepthTargets, SensorNoise, check_covariances, depth_targets
 from .training import RayBatcher, Trainer, read_checkpoint, render_field, safe_torch_load, sampling_of
 
 FORMAT_VERSION = 1
@@ -455,7 +455,8 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
         folder = f"targets-rank{dist.rank}" if dist.enabled else "targets"  # ranks may share checkpoint_dir
         storage = Path(checkpoint_dir) / folder if checkpoint_dir else Path(tempfile.mkdtemp(prefix="pnerf-targets-"))
     targets = depth_targets(train_seq, poses=poses[train_idx], covariances=covariances[train_idx],
-                            storage_dir=storage, progress=config.progress)
+                            sensor=SensorNoise(relative=config.depth_sigma_relative), storage_dir=storage,
+                            progress=config.progress)
     K = train_seq.K
     box = scene_box(targets, poses[train_idx], K)
     if not rgbd_sequence.has_depth and not targets.valid.any():  # no SfM point in view: the bounds' frusta

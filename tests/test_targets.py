@@ -19,10 +19,12 @@ from open3d_pnerf.targets import DepthTargets, SensorNoise, depth_targets, ray_n
 Z0 = 2.0
 CENTRE = (24, 32)  # (row, col) of the principal point
 S = SensorNoise().sigma(Z0)  # sensor sigma at z0
+RANDOM_ONLY = SensorNoise(relative=0.0)  # the fusion algebra below is exact without the systematic term
 
 
 def targets(seq, poses, **kw) -> DepthTargets:
     kw.setdefault("progress", False)
+    kw.setdefault("sensor", RANDOM_ONLY)
     return depth_targets(seq, poses=poses, **kw)
 
 
@@ -31,6 +33,20 @@ def test_sensor_noise_model():
     assert noise.sigma(np.float64(0.4)) == pytest.approx(0.0012)
     assert noise.sigma(np.float64(1.4)) == pytest.approx(0.0012 + 0.0019)
     np.testing.assert_allclose(SensorNoise(a=0.0, b=1.0, c=0.0).sigma(np.array([[1.0, 2.0]])), [[1.0, 4.0]])
+    np.testing.assert_allclose(SensorNoise(relative=0.02).systematic_var(np.array([1.0, 2.0])), [0.02**2, 0.04**2])
+
+
+def test_systematic_error_is_added_after_fusion(plane_scene):
+    """Random noise averages over the fused views (S^2 / support); the systematic part, the
+    same in every view, does not: sigma^2 = S^2 / support + (relative z0)^2 exactly."""
+    seq, poses = plane_scene(Z0)
+    t = targets(seq, poses, sensor=SensorNoise(relative=0.01))
+    support = t.support.astype(float)
+    assert support.max() == 3
+    np.testing.assert_allclose(t.sigma, np.sqrt(S**2 / support + (0.01 * Z0) ** 2), rtol=1e-5)
+    np.testing.assert_allclose(t.mean, Z0, atol=1e-4)  # the mean does not move
+    default = depth_targets(seq, poses=poses, progress=False)  # SensorNoise() has relative = 0.02
+    np.testing.assert_allclose(default.sigma, np.sqrt(S**2 / support + (0.02 * Z0) ** 2), rtol=1e-5)
 
 
 def test_ray_norms():
@@ -76,7 +92,8 @@ def test_trajectory_argument_equals_poses(plane_scene):
     covs = np.zeros((3, 6, 6))
     covs[:, 5, 5] = 1e-4
     a = targets(seq, poses, covariances=covs)
-    b = depth_targets(seq, types.SimpleNamespace(poses=poses, covariances=covs), progress=False)
+    trajectory = types.SimpleNamespace(poses=poses, covariances=covs)
+    b = depth_targets(seq, trajectory, sensor=RANDOM_ONLY, progress=False)
     for name in ("mean", "sigma", "valid", "support", "filled"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
@@ -192,6 +209,10 @@ def test_bad_inputs(plane_scene):
         targets(seq, poses, neighbors=-1)
     with pytest.raises(InputError, match="fill_min_views"):
         targets(seq, poses, fill_min_views=0)
+    with pytest.raises(InputError, match="relative >= 0"):
+        targets(seq, poses, sensor=SensorNoise(relative=-0.01))
+    with pytest.raises(InputError, match="SensorNoise"):
+        targets(seq, poses, sensor=0.02)
 
 
 def test_rotated_cameras_reproject_with_camera_to_world_poses(plane_scene):
