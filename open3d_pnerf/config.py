@@ -78,8 +78,8 @@ class ReconstructionConfig:
     Gaussian prior from the pose covariances (open3d_pnerf.pose_refinement): uncertain poses
     move, certain ones stay (zero covariance: fixed). The Reconstruction's poses are the refined
     ones; held-out frames are moved by the rigid shift that best fits the training frames' refinement.
-    Use it with field="grid": the hash grid's fine levels fit the misaligned views instead, and
-    poses move much less (benchmarks/bench_pose_refinement.py)."""
+    Use it with field="grid": the hash grid's fine levels partly fit the misaligned views instead,
+    poses move less and held-out PSNR does not improve (benchmarks/bench_pose_refinement.py)."""
     pose_lr: float = 1e-3
     """Initial Adam learning rate of the pose corrections (rad or m per step; same decay as lr)."""
     pose_prior_weight: float = 1e-3
