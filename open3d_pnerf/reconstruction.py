@@ -477,14 +477,10 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
     trainer = Trainer(field, batcher, config, eval_rays, checkpoint_dir, dist)
     if checkpoint is not None:
         trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt", checkpoint)
+    exposure = trainer.exposure
     try:
         train_stats = trainer.train()
         history = trainer.history
-        gains = np.ones((n, 3))
-        if trainer.exposure is not None:  # held-out frames: the exposure of the training frames around them
-            gains[train_idx] = trainer.exposure.gains().detach().double().cpu().numpy()
-            times = rgbd_sequence.timestamps
-            gains[hold_idx] = interpolate_gains(times[train_idx], gains[train_idx], times[hold_idx])
     finally:
         targets_summary = targets.summary()
         if storage is not None:  # the model has learned them; do not leave gigabytes behind
@@ -496,6 +492,11 @@ def _reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig, pose
         poses = poses.copy()
         poses[hold_idx] = follow_refinement(poses[train_idx], refined, poses[hold_idx])
         poses[train_idx] = refined
+    gains = np.ones((n, 3))
+    if exposure is not None:  # held-out frames: the exposure of the training frames around them
+        gains[train_idx] = exposure.gains().detach().double().cpu().numpy()
+        times = rgbd_sequence.timestamps
+        gains[hold_idx] = interpolate_gains(times[train_idx], gains[train_idx], times[hold_idx])
     recon = Reconstruction(field, config, poses, covariances, train_seq.intrinsic, aabb, train_idx, hold_idx,
                            rgbd_sequence.timestamps,
                            stats={"training": train_stats, "history": history, "targets": targets_summary,
