@@ -61,6 +61,10 @@ class ReconstructionConfig:
     """Initial Adam learning rate."""
     lr_final_factor: float = 0.05
     """The learning rate decays exponentially to lr * lr_final_factor at the end."""
+    adam_beta2: float = 0.99
+    """Adam's second-moment decay (Instant-NGP's 0.99). PyTorch's 0.999 remembers the large
+    early depth-loss gradients for ~1000 steps, which holds back colour fitting after the depth
+    gains have decayed (benchmarks/bench_nerf.py runs photometric with 0.999 for comparison)."""
     gains: LossGains = dataclasses.field(default_factory=LossGains)
     """Loss gains Kc, Kd, Kz (and the DS-NeRF gain)."""
     depth_gain_final_factor: float = 0.01
@@ -189,6 +193,7 @@ class ReconstructionConfig:
             ("n_guided", lambda v: count(v, 0), "an int >= 0"),
             ("lr", lambda v: number(v) and v > 0, "a number > 0"),
             ("lr_final_factor", lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
+            ("adam_beta2", lambda v: number(v) and 0 <= v < 1, "a number in [0, 1)"),
             ("pose_lr", lambda v: number(v) and v > 0, "a number > 0"),
             ("pose_prior_weight", lambda v: number(v) and v >= 0, "a number >= 0"),
             ("gains", lambda v: isinstance(v, LossGains) and all(number(g) and g >= 0 for g in dataclasses.astuple(v)),

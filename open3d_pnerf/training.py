@@ -171,7 +171,7 @@ class Trainer:
             groups.append({"params": list(self.pose_corrections.parameters()), "lr": config.pose_lr})
         if self.exposure is not None:
             groups.append({"params": list(self.exposure.parameters()), "lr": config.lr})
-        self.optimizer = torch.optim.Adam(groups, eps=1e-15, **fused)
+        self.optimizer = torch.optim.Adam(groups, betas=(0.9, config.adam_beta2), eps=1e-15, **fused)
         self._initial_lrs = [g["lr"] for g in groups]
         self.generator = torch.Generator().manual_seed(config.seed)
         self.sampling = sampling_of(config)

@@ -363,6 +363,8 @@ CASES = [
     Case("config-negative-systematic-sigma", nothing,
          lambda _: ReconstructionConfig.preset("test", depth_sigma_relative=-0.02), ConfigError,
          ("depth_sigma_relative", "[0, 1)")),
+    Case("config-adam-beta2-one", nothing, lambda _: ReconstructionConfig.preset("test", adam_beta2=1.0), ConfigError,
+         ("adam_beta2", "[0, 1)")),
     Case("config-unknown-preset", nothing, lambda _: ReconstructionConfig.preset("tiny"), ConfigError, ("tiny", "fast")),
     Case("config-invalid-reaches-reconstruct", lambda t: memory(),
          lambda s: reconstruct(s, dataclasses.replace(CONFIG, rays_per_batch=0), poses=POSES), ConfigError,

@@ -70,7 +70,7 @@ def test_unknown_field_raises_config_error_naming_it():
     [
         ("loss", "l2"), ("field", "mlp"), ("max_steps", 0), ("max_steps", 2.5), ("time_budget_s", -1.0),
         ("image_scale", 1.5), ("image_scale", 0.0), ("holdout_every", -1), ("rays_per_batch", 0),
-        ("n_coarse", 1), ("n_fine", -1), ("n_guided", -2), ("lr", 0.0), ("lr_final_factor", 2.0),
+        ("n_coarse", 1), ("n_fine", -1), ("n_guided", -2), ("lr", 0.0), ("lr_final_factor", 2.0), ("adam_beta2", 1.0),
         ("grid_resolutions", ()), ("grid_resolutions", (16, 1)), ("cache_frames", 0),
         ("export_scale", 0.0), ("mesh_voxel_size", 0.0), ("device", "tpu"),
     ],
@@ -449,6 +449,12 @@ def test_depth_gains_decay_to_their_final_factor_and_colour_stays(scene, monkeyp
     trainer.step = 100
     trainer.train_step()
     assert seen[-1].depth == pytest.approx(0.04)  # the step uses the decayed gains
+
+
+def test_adam_uses_the_configured_second_moment_decay(scene):
+    for beta2 in (0.99, 0.999):
+        trainer = make_trainer(scene, config(adam_beta2=beta2))
+        assert [g["betas"] for g in trainer.optimizer.param_groups] == [(0.9, beta2)] * 2  # field, exposure gains
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
