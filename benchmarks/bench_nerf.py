@@ -10,8 +10,11 @@ Open3D TSDF baseline fused from the same training frames and poses. Also measure
 training throughput of the hashgrid, grid and vanilla fields.
 
     python benchmarks/bench_nerf.py [--budget 150] [--seeds 3] [--quick]
+    python benchmarks/bench_nerf.py --steps 1000 --losses-only --name nerf_1000_steps
 
-Writes benchmarks/results/nerf.json and nerf.md.
+Writes benchmarks/results/<name>.json and <name>.md (name: nerf). --steps trains every run
+for a fixed number of steps instead of a time budget: equal work rather than equal time,
+which takes this machine's speed variations out of the comparison.
 """
 
 import argparse
@@ -57,10 +60,16 @@ def main():
     ap.add_argument("--budget", type=float, default=150.0, help="training seconds per run")
     ap.add_argument("--seeds", type=int, default=3, help="seeds 0..n-1 of the pnerf and photometric runs")
     ap.add_argument("--quick", action="store_true", help="30 s runs (a smoke test of the script)")
+    ap.add_argument("--steps", type=int, help="train each run for this many steps, without a time budget")
+    ap.add_argument("--losses-only", action="store_true",
+                    help="only the pnerf and photometric runs and the TSDF (no variants, no throughput)")
+    ap.add_argument("--name", default="nerf", help="stem of the result files in benchmarks/results/")
     args = ap.parse_args()
     if not TUM.is_dir():
         sys.exit(f"shared data not found: {TUM}")
     budget = 30.0 if args.quick else args.budget
+    limits = dict(time_budget_s=None, max_steps=args.steps) if args.steps else dict(time_budget_s=budget,
+                                                                                      max_steps=10**6)
     seq = pn.load_sequence(TUM)
     t0 = time.perf_counter()
     traj = pn.track(seq, progress=False)
@@ -70,15 +79,15 @@ def main():
 
     runs = {f"{loss}_seed{seed}": dict(loss=loss, seed=seed)
             for seed in range(args.seeds) for loss in ("pnerf", "photometric")}
-    runs["dsnerf_seed0"] = dict(loss="dsnerf")
-    runs["pnerf_no_guided_sampling_seed0"] = dict(loss="pnerf", depth_guided_sampling=False)
-    runs["pnerf_without_systematic_sigma_seed0"] = dict(loss="pnerf", depth_sigma_relative=0.0)
-    runs["photometric_adam_beta2_0.999_seed0"] = dict(loss="photometric", adam_beta2=0.999)
+    if not args.losses_only:
+        runs["dsnerf_seed0"] = dict(loss="dsnerf")
+        runs["pnerf_no_guided_sampling_seed0"] = dict(loss="pnerf", depth_guided_sampling=False)
+        runs["pnerf_without_systematic_sigma_seed0"] = dict(loss="pnerf", depth_sigma_relative=0.0)
+        runs["photometric_adam_beta2_0.999_seed0"] = dict(loss="photometric", adam_beta2=0.999)
     results = {}
     tsdf_scores = None
     for name, overrides in runs.items():
-        cfg = pn.ReconstructionConfig.preset("fast", time_budget_s=budget, max_steps=10**6, holdout_every=4,
-                                             progress=False, **overrides)
+        cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, progress=False, **limits, **overrides)
         t = time.perf_counter()
         recon = pn.reconstruct(seq, cfg, poses=traj.poses, covariances=traj.covariances)
         wall = time.perf_counter() - t
@@ -96,16 +105,18 @@ def main():
 
     means = {loss: {k: float(np.mean([r["scores"][k] for n, r in results.items() if n.startswith(loss + "_seed")]))
                     for k in ("psnr", "ssim", "depth_l1")} for loss in ("pnerf", "photometric")}
-    speeds = {f: throughput(f, seq, traj.poses, 15.0 if args.quick else 30.0) for f in ("hashgrid", "grid", "vanilla")}
+    speeds = {} if args.losses_only else {
+        f: throughput(f, seq, traj.poses, 15.0 if args.quick else 30.0) for f in ("hashgrid", "grid", "vanilla")}
     print("samples/s:", speeds, flush=True)
     report = {
         "machine": {"platform": platform.platform(), "cpus": torch.get_num_threads(), "torch": torch.__version__},
         "dataset": "TUM fr1/xyz, 32 associated frames, every 4th held out (8), 320x240",
-        "budget_s": budget, "tracking": {"ate_rmse_mm": round(1000 * ate, 2), "seconds": round(tracking_s, 1)},
+        "budget_s": None if args.steps else budget, "steps_per_run": args.steps,
+        "tracking": {"ate_rmse_mm": round(1000 * ate, 2), "seconds": round(tracking_s, 1)},
         "runs": results, "tsdf": tsdf_scores, "samples_per_s": speeds, "mean_over_seeds": means,
     }
     OUT.mkdir(exist_ok=True)
-    (OUT / "nerf.json").write_text(json.dumps(report, indent=1))
+    (OUT / f"{args.name}.json").write_text(json.dumps(report, indent=1))
     rows = ["| run | held-out PSNR (dB) | SSIM | depth L1 (mm) | within 1 sigma | steps |", "| --- | --- | --- | --- | --- | --- |"]
     for name, r in results.items():
         s = r["scores"]
@@ -116,10 +127,11 @@ def main():
     for loss, m in means.items():
         rows.append(f"| {loss}, mean of {args.seeds} seeds | {m['psnr']:.2f} | {m['ssim']:.3f} | "
                     f"{1000 * m['depth_l1']:.1f} | - | - |")
-    speed = " / ".join(f"{k} {v / 1000:.0f}k" for k, v in speeds.items())
-    (OUT / "nerf.md").write_text("\n".join(rows) + f"\n\nTraining samples/s: {speed}. Budget {budget:.0f} s a run; "
-                                 f"{report['machine']}\n")
-    print((OUT / "nerf.md").read_text())
+    speed = " / ".join(f"{k} {v / 1000:.0f}k" for k, v in speeds.items()) or "not measured"
+    limit = f"{args.steps} steps" if args.steps else f"{budget:.0f} s"
+    md = OUT / f"{args.name}.md"
+    md.write_text("\n".join(rows) + f"\n\nTraining samples/s: {speed}. Budget {limit} a run; {report['machine']}\n")
+    print(md.read_text())
 
 
 if __name__ == "__main__":
