@@ -63,8 +63,9 @@ class ReconstructionConfig:
     """The learning rate decays exponentially to lr * lr_final_factor at the end."""
     adam_beta2: float = 0.99
     """Adam's second-moment decay (Instant-NGP's 0.99). PyTorch's 0.999 remembers the large
-    early depth-loss gradients for ~1000 steps, which holds back colour fitting after the depth
-    gains have decayed (benchmarks/bench_nerf.py runs photometric with 0.999 for comparison)."""
+    early depth-loss gradients for ~1000 steps, which can hold back colour fitting after the
+    depth gains have decayed; 0.99 gave the pnerf loss higher held-out PSNR on TUM fr1/xyz in
+    exploratory runs (benchmarks/bench_nerf.py also runs photometric with 0.999 to compare)."""
     gains: LossGains = dataclasses.field(default_factory=LossGains)
     """Loss gains Kc, Kd, Kz (and the DS-NeRF gain)."""
     depth_gain_final_factor: float = 0.01

@@ -84,12 +84,15 @@ def result(out: Path, rank: int) -> dict:
 
 
 def assert_same_fields(a: dict, b: dict, exact: bool = False) -> None:
+    """Equal, or equal to within 1% of one Adam step (lr 1e-2): Adam divides each gradient by its
+    own size, so an entry whose gradient is nearly zero turns the summation-order rounding of
+    the two runs into up to a few 1e-5; a wrong gradient sum moves entries by whole steps."""
     assert a.keys() == b.keys()
     for k in a:
         if exact:
             assert torch.equal(a[k], b[k]), k
         else:
-            torch.testing.assert_close(a[k], b[k], rtol=1e-4, atol=1e-5, msg=lambda m, k=k: f"{k}: {m}")
+            torch.testing.assert_close(a[k], b[k], rtol=1e-4, atol=1e-4, msg=lambda m, k=k: f"{k}: {m}")
 
 
 # -- ranks, shares and the loss normalisation (one process) --------------------------------------
