@@ -10,7 +10,7 @@ Open3D TSDF baseline fused from the same training frames and poses. Also measure
 training throughput of the hashgrid, grid and vanilla fields.
 
     python benchmarks/bench_nerf.py [--budget 150] [--seeds 3] [--quick]
-    python benchmarks/bench_nerf.py --steps 1000 --losses-only --name nerf_1000_steps
+    python benchmarks/bench_nerf.py --steps 1000 --losses-only --seeds 2 --name nerf_1000_steps
 
 Writes benchmarks/results/<name>.json and <name>.md (name: nerf). --steps trains every run
 for a fixed number of steps instead of a time budget: equal work rather than equal time,
