@@ -68,8 +68,9 @@ def main():
     if not TUM.is_dir():
         sys.exit(f"shared data not found: {TUM}")
     budget = 30.0 if args.quick else args.budget
-    limits = dict(time_budget_s=None, max_steps=args.steps) if args.steps else dict(time_budget_s=budget,
-                                                                                      max_steps=10**6)
+    limits = dict(time_budget_s=budget, max_steps=10**6)  # equal time
+    if args.steps:  # equal work
+        limits = dict(time_budget_s=None, max_steps=args.steps)
     seq = pn.load_sequence(TUM)
     t0 = time.perf_counter()
     traj = pn.track(seq, progress=False)
@@ -114,6 +115,7 @@ def main():
         "budget_s": None if args.steps else budget, "steps_per_run": args.steps,
         "tracking": {"ate_rmse_mm": round(1000 * ate, 2), "seconds": round(tracking_s, 1)},
         "runs": results, "tsdf": tsdf_scores, "samples_per_s": speeds, "mean_over_seeds": means,
+        "total_minutes": round((time.perf_counter() - t0) / 60, 1),
     }
     OUT.mkdir(exist_ok=True)
     (OUT / f"{args.name}.json").write_text(json.dumps(report, indent=1))
@@ -130,7 +132,8 @@ def main():
     speed = " / ".join(f"{k} {v / 1000:.0f}k" for k, v in speeds.items()) or "not measured"
     limit = f"{args.steps} steps" if args.steps else f"{budget:.0f} s"
     md = OUT / f"{args.name}.md"
-    md.write_text("\n".join(rows) + f"\n\nTraining samples/s: {speed}. Budget {limit} a run; {report['machine']}\n")
+    md.write_text("\n".join(rows) + f"\n\nTraining samples/s: {speed}. Budget {limit} a run, "
+                  f"{report['total_minutes']} min in all; {report['machine']}\n")
     print(md.read_text())
 
 
