@@ -60,7 +60,7 @@ def main():
 
     torch.set_num_threads(args.threads)
     import open3d_pnerf as pn
-    from open3d_pnerf.data.loaders import write_sequence
+    from open3d_pnerf.data import write_sequence
     from open3d_pnerf.synthetic import synthetic_sequence
 
     sampler = RSSSampler()

@@ -29,6 +29,7 @@ import torch
 
 import open3d_pnerf as pn
 from open3d_pnerf.evaluation import heldout_scores
+from open3d_pnerf.pipeline import run, training_frames
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 TUM = SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz"
@@ -36,23 +37,10 @@ OUT = Path(__file__).resolve().parent / "results"
 
 
 def throughput(field: str, seq, poses, seconds: float = 20.0) -> float:
-    """Training samples/s of a field on the sequence (short run, same sampling)."""
+    """Training samples/s of a field on the sequence (short run, same sampling, no export)."""
     cfg = pn.ReconstructionConfig.preset("fast", field=field, time_budget_s=seconds, max_steps=10**6,
                                          holdout_every=4, progress=False)
-    recon_stats = _train_only(seq, poses, cfg)
-    return recon_stats["samples_per_s"]
-
-
-def _train_only(seq, poses, cfg):
-    from open3d_pnerf.reconstruction import build_field, scene_box, split_frames
-    from open3d_pnerf.training import RayBatcher, Trainer
-
-    train, _ = split_frames(len(seq), cfg.holdout_every)
-    ts = seq.select(train).rescaled(cfg.image_scale)
-    targets = pn.depth_targets(ts, poses=poses[train], progress=False)
-    field = build_field(cfg, scene_box(targets, poses[train], ts.K))
-    batcher = RayBatcher(ts, poses[train], targets, field.aabb, field.aabb.device, cfg.seed)
-    return Trainer(field, batcher, cfg).train()
+    return run(seq, cfg, poses, export=False).stats["training"]["samples_per_s"]
 
 
 def main():
@@ -82,9 +70,9 @@ def main():
             for seed in range(args.seeds) for loss in ("pnerf", "photometric")}
     if not args.losses_only:
         runs["dsnerf_seed0"] = dict(loss="dsnerf")
-        runs["pnerf_no_guided_sampling_seed0"] = dict(loss="pnerf", depth_guided_sampling=False)
-        runs["pnerf_without_systematic_sigma_seed0"] = dict(loss="pnerf", depth_sigma_relative=0.0)
-        runs["photometric_adam_beta2_0.999_seed0"] = dict(loss="photometric", adam_beta2=0.999)
+        runs["pnerf_no_guided_sampling_seed0"] = {"loss": "pnerf", "sampling.depth_guided": False}
+        runs["pnerf_without_systematic_sigma_seed0"] = {"loss": "pnerf", "targets.depth_sigma_relative": 0.0}
+        runs["photometric_adam_beta2_0.999_seed0"] = {"loss": "photometric", "optimizer.adam_beta2": 0.999}
     results = {}
     tsdf_scores = None
     for name, overrides in runs.items():
@@ -93,7 +81,7 @@ def main():
         recon = pn.reconstruct(seq, cfg, poses=traj.poses, covariances=traj.covariances)
         wall = time.perf_counter() - t
         if tsdf_scores is None:
-            train = seq.select(recon.train_indices).rescaled(cfg.image_scale)
+            train = training_frames(seq, recon.train_indices, cfg)
             volume = pn.tsdf_fusion(train, traj.poses[recon.train_indices], return_volume=True, progress=False)
             tsdf_scores = heldout_scores(recon, seq, volume)["tsdf"]
         scores = heldout_scores(recon, seq)["model"]

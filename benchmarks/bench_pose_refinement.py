@@ -31,7 +31,7 @@ OUT = Path(__file__).resolve().parent / "results"
 def run(data, field: str, refine: bool, budget: float) -> dict:
     seq = data.sequence
     cfg = pn.ReconstructionConfig.preset("fast", field=field, time_budget_s=budget, max_steps=10**6, holdout_every=4,
-                                         progress=False, refine_poses=refine, calibrate_depth_sigma=False)
+                                         progress=False, refine_poses=refine, **{"export.calibrate_depth_sigma": False})
     recon = pn.reconstruct(seq, cfg, poses=data.poses, covariances=data.covariances)
     train, hold = recon.train_indices, recon.holdout_indices
     ate = pn.absolute_trajectory_error(recon.poses[train], seq.gt_poses[train])

@@ -55,7 +55,7 @@ HOLDOUT_EVERY = {"fern": 8}  # the LLFF protocol; 4 for the others
 IMAGE_SCALE = {"fern": 1.0}  # 504x378 (images_8, nerf-pytorch's fern setting); 0.5 (320x240) for the others
 VARIANTS = {  # name -> config overrides
     "photometric": dict(loss="photometric"),
-    "+density": dict(loss="pnerf", gains={"depth": 0.0}),
+    "+density": {"loss": "pnerf", "objective.weights.depth": 0.0},
     "pnerf": dict(loss="pnerf"),
     "dsnerf": dict(loss="dsnerf"),
 }
@@ -65,6 +65,7 @@ def load(dataset: str, cache: Path):
     """(sequence, reference surface or None) for a dataset name; the synthetic one from its
     folder in the cache (see prepare_synthetic)."""
     import open3d as o3d
+
     import open3d_pnerf as pn
 
     if dataset.startswith("synthetic"):
@@ -79,8 +80,9 @@ def prepare_synthetic(cache: Path, quick: bool) -> str:
     them. The folder name carries a hash of synthetic.py: a changed generator renders anew.
     Returns the dataset name (the folder's name)."""
     import open3d as o3d
+
     from open3d_pnerf import synthetic
-    from open3d_pnerf.data.loaders import write_sequence
+    from open3d_pnerf.data import write_sequence
 
     digest = hashlib.sha1(Path(synthetic.__file__).read_bytes()).hexdigest()[:8]
     name = f"synthetic_{'quick' if quick else 'full'}_{digest}"

@@ -25,7 +25,7 @@ def main():
     traj = pn.track(seq, progress=False)
     rows = {}
     for scale in (1.0, 0.5):
-        s = seq.rescaled(scale)
+        s = seq.at_scale(scale)
         t = time.perf_counter()
         targets = pn.depth_targets(s, traj, progress=False)
         seconds = time.perf_counter() - t

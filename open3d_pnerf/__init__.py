@@ -7,6 +7,7 @@ Public API::
     targets = open3d_pnerf.depth_targets(seq, traj)     # per-pixel depth mean and sigma
     mesh = open3d_pnerf.tsdf_fusion(seq, traj.poses)    # the Open3D TSDF baseline
     recon = open3d_pnerf.reconstruct(seq)               # all of it + the probabilistic NeRF
+    cmp = open3d_pnerf.compare_with_tsdf(seq, reconstruction=recon)
 """
 
 from ._deps import require
@@ -15,32 +16,49 @@ require("open3d")
 require("torch")
 
 from . import errors  # noqa: E402
-from .baselines import TSDFVolume, tsdf_fusion  # noqa: E402
+from .comparison import Comparison, compare_with_tsdf  # noqa: E402
 from .config import ReconstructionConfig  # noqa: E402
-from .data import RGBDSequence, load_sample, load_sequence  # noqa: E402
-from .losses import LossGains  # noqa: E402
-from .reconstruction import Reconstruction, reconstruct  # noqa: E402
+from .data import RGBDSequence, SfMData, load_sample, load_sequence  # noqa: E402
+from .losses import LossWeights  # noqa: E402
+from .model import PNeRFModel  # noqa: E402
+from .pipeline import reconstruct  # noqa: E402
+from .reconstruction import Reconstruction  # noqa: E402
+from .synthetic import synthetic_sequence  # noqa: E402
 from .targets import DepthTargets, SensorNoise, depth_targets, sparse_depth_targets  # noqa: E402
 from .tracking import Trajectory, absolute_trajectory_error, track  # noqa: E402
+from .tsdf import TSDFVolume, tsdf_fusion  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Comparison",
     "DepthTargets",
-    "LossGains",
+    "LossWeights",
+    "PNeRFModel",
     "RGBDSequence",
     "Reconstruction",
     "ReconstructionConfig",
     "SensorNoise",
+    "SfMData",
     "TSDFVolume",
     "Trajectory",
     "absolute_trajectory_error",
+    "compare_with_tsdf",
     "depth_targets",
     "errors",
     "load_sample",
     "load_sequence",
     "reconstruct",
     "sparse_depth_targets",
+    "synthetic_sequence",
     "track",
     "tsdf_fusion",
 ]
+
+
+def __getattr__(name: str):
+    from . import losses
+
+    if name in losses.RENAMED:
+        return losses.renamed(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -4,6 +4,9 @@ Errors a user can fix are printed as one line (`open3d-pnerf: error: ...`) with 
 Ctrl-C exits with 130 after training has written its checkpoint. `reconstruct` and `demo`
 train data-parallel when launched by torchrun (`torchrun --nproc-per-node N -m
 open3d_pnerf.cli reconstruct ...`): rank 0 prints and writes every output.
+
+The commands only parse, call the pipeline and write files; the module's length is the six
+commands' option definitions.
 """
 
 from __future__ import annotations
@@ -15,7 +18,23 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
+
+from ._files import atomic_write
+from .comparison import compare_with_tsdf
+from .config import FIELD_CONFIGS, ReconstructionConfig
+from .data import load_sample, load_sequence, write_log_trajectory, write_tum_trajectory
+from .distributed import BACKENDS, DistributedContext, distributed_session
+from .errors import CheckpointError, ConfigError, DatasetError, InputError, PNeRFError
+from .evaluation import heldout_scores
+from .export import write_mesh_ply, write_point_cloud_ply
+from .losses import LOSSES
+from .pipeline import checked_config, resolve_poses, run, track_sequence
+from .reconstruction import Reconstruction
+from .report import report_markdown, scores_table
+from .tracking import absolute_trajectory_error
+from .tsdf import tsdf_fusion
 
 EXIT_OK, EXIT_ERROR, EXIT_INTERRUPTED = 0, 2, 130
 
@@ -24,8 +43,6 @@ def _frames(spec: str | None):
     """'a:b:s' (python slice) or 'i,j,k' -> slice or list; None -> None."""
     if not spec:
         return None
-    from .errors import InputError
-
     try:
         if ":" in spec:
             return slice(*[int(p) if p else None for p in spec.split(":")])
@@ -35,8 +52,6 @@ def _frames(spec: str | None):
 
 
 def _load(args):
-    from .data import load_sample, load_sequence
-
     seq = load_sample() if args.data == "sample" else load_sequence(args.data, depth_trunc=args.depth_trunc)
     frames = _frames(getattr(args, "frames", None))
     if frames is not None:
@@ -45,39 +60,52 @@ def _load(args):
 
 
 def _config(args):
-    from .config import ReconstructionConfig
-
     overrides = {k: v for k, v in {
         "loss": args.loss, "field": args.field, "device": args.device, "max_steps": args.max_steps,
         "time_budget_s": args.time_budget, "holdout_every": args.holdout_every, "seed": args.seed,
-        "image_scale": args.image_scale, "rays_per_batch": args.rays_per_batch, "dist_backend": args.dist_backend,
-        "dist_timeout_s": args.dist_timeout, "refine_poses": args.refine_poses or None,
+        "image_scale": args.image_scale, "optimizer.rays_per_batch": args.rays_per_batch,
+        "runtime.dist_backend": args.dist_backend, "runtime.dist_timeout_s": args.dist_timeout,
+        "refine_poses": args.refine_poses or None,
     }.items() if v is not None}
+    overrides.update(_settings(args.set or []))
     overrides["progress"] = not args.quiet
     return ReconstructionConfig.preset(args.preset, **overrides)
 
 
-def _poses_for(seq, args, out: Path, reuse: bool = False, write_cache: bool = True):
-    """(poses, covariances): GT if asked, else tracking (reused from out/tracking when resuming,
-    written there if write_cache)."""
-    from .errors import InputError
-    from .tracking import track
+def _settings(pairs: list[str]) -> dict:
+    """--set KEY=VALUE pairs as config overrides; VALUE is read as JSON (numbers, true/false,
+    null, lists), else taken as a string."""
+    out = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {pair!r}: expected KEY=VALUE, e.g. --set sampling.n_coarse=32")
+        try:
+            out[key] = json.loads(text)
+        except json.JSONDecodeError:
+            out[key] = text
+        if isinstance(out[key], list):
+            out[key] = tuple(out[key])
+    return out
 
-    if not seq.has_depth:  # an image-only sequence brings its SfM poses
-        return seq.poses, seq.covariances
-    if args.gt_poses:
+
+def _poses_for(seq, args, config, out: Path, reuse: bool = False, write_cache: bool = True):
+    """(poses, covariances): ground truth if asked, else the pipeline's (SfM poses of an
+    image-only sequence, or tracking reused from out/tracking when resuming, written there if
+    write_cache)."""
+    if args.gt_poses and seq.has_depth:
         if seq.gt_poses is None:
             raise InputError(f"--gt-poses: {args.data} has no ground-truth poses")
         return seq.gt_poses, np.zeros((len(seq), 6, 6))
     cache = out / "tracking"
-    if reuse and (cache / "poses.npy").is_file():
+    if seq.has_depth and reuse and (cache / "poses.npy").is_file():
         return np.load(cache / "poses.npy"), np.load(cache / "covariances.npy")
-    traj = track(seq, progress=not args.quiet)
-    if write_cache:
+    poses, covariances = resolve_poses(seq, config)
+    if seq.has_depth and write_cache:
         cache.mkdir(parents=True, exist_ok=True)
-        np.save(cache / "poses.npy", traj.poses)
-        np.save(cache / "covariances.npy", traj.covariances)
-    return traj.poses, traj.covariances
+        np.save(cache / "poses.npy", poses)
+        np.save(cache / "covariances.npy", covariances)
+    return poses, covariances
 
 
 RUN_OPTIONS = ("data", "frames", "gt_poses", "depth_trunc")  # what run_config.json records about the input
@@ -92,8 +120,6 @@ def _write_run_config(out: Path, config, args) -> None:
 
 def _read_run_config(out: Path, what: str) -> dict:
     """The run_config.json of a reconstruct/demo output folder (CheckpointError if absent)."""
-    from .errors import CheckpointError
-
     path = out / "run_config.json"
     if not path.is_file():
         raise CheckpointError(f"{what} {out}: no run_config.json there (not a reconstruct output folder)")
@@ -101,17 +127,14 @@ def _read_run_config(out: Path, what: str) -> dict:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    from ._files import atomic_write
-
     atomic_write(path, lambda p: Path(p).write_text(json.dumps(data, indent=1, default=float)))
 
 
 @contextlib.contextmanager
 def _ranks(config, args):
     """The torchrun process group (if any) of a training command; ranks other than 0 stay quiet."""
-    from .distributed import distributed_session
-
-    with distributed_session(config.device, config.dist_backend, config.dist_timeout_s) as dist:
+    runtime = config.runtime
+    with distributed_session(config.device, runtime.dist_backend, runtime.dist_timeout_s) as dist:
         if not dist.is_main:
             args.quiet = True
         yield dist
@@ -122,20 +145,16 @@ def run_reconstruction(seq, config, out: Path, args, resume: bool = False, dist=
 
     dist: the DistributedContext of a torchrun launch; ranks other than 0 track and train
     but write nothing and return {}."""
-    from .comparison import compare_with_tsdf
-    from .distributed import DistributedContext
-    from .reconstruction import reconstruct
-    from .tracking import absolute_trajectory_error
-
     dist = dist or DistributedContext()
     out.mkdir(parents=True, exist_ok=True)
+    config = checked_config(config)
     t0 = time.perf_counter()
-    poses, covs = _poses_for(seq, args, out, reuse=resume, write_cache=dist.is_main)
+    poses, covs = _poses_for(seq, args, config, out, reuse=resume, write_cache=dist.is_main)
     ate = None
     if seq.gt_poses is not None and not args.gt_poses:
         ate = absolute_trajectory_error(poses, seq.gt_poses)["rmse"]
     tracking_s = time.perf_counter() - t0
-    recon = reconstruct(seq, config, poses=poses, covariances=covs, checkpoint_dir=out / "checkpoints", resume=resume)
+    recon = run(seq, config, poses, covs, out / "checkpoints", resume, dist)
     if not dist.is_main:
         return {}
     recon.stats["timings"]["tracking_s"] = round(tracking_s, 2)
@@ -148,49 +167,12 @@ def run_reconstruction(seq, config, out: Path, args, resume: bool = False, dist=
     report = {"sequence": repr(seq), "frames": len(seq), "ate_rmse_m": ate, "scores": scores, "figures": figures,
               **recon.stats}
     _write_json(out / "report.json", report)
-    (out / "report.md").write_text(_report_md(report, recon, out))
+    (out / "report.md").write_text(report_markdown(report, recon))
     return report
-
-
-def _report_md(report: dict, recon, out: Path) -> str:
-    lines = [f"# open3d_pnerf reconstruction: {report['sequence']}", ""]
-    if report.get("ate_rmse_m") is not None:
-        lines.append(f"- Tracking ATE RMSE vs ground truth: {1000 * report['ate_rmse_m']:.1f} mm")
-    tr = report["training"]
-    lines += [
-        f"- Training: {tr['steps']} steps in {tr['seconds']} s, {tr['samples_per_s'] / 1000:.0f} k samples/s, "
-        f"loss {recon.config.loss}, field {recon.config.field}",
-        f"- Timings (s): {report['timings']}",
-        f"- Mesh: {len(recon.mesh.triangles)} triangles (`mesh.ply`); point cloud: {len(recon.point_cloud.points)} "
-        "points with per-point `depth_sigma` (`point_cloud.ply`)",
-        "",
-    ]
-    if report["scores"]:
-        lines += ["## Held-out frames", "", *_scores_table(report["scores"]), ""]
-        shown = "input, model, TSDF" if "tsdf" in report["scores"] else "input, model"
-        lines += [f"![held-out frame: {shown}]({name})" for name in report["figures"]]
-    return "\n".join(lines) + "\n"
-
-
-def _scores_table(scores: dict) -> list[str]:
-    """Markdown lines: a table of heldout_scores() output and the model's depth calibration
-    (image metrics only for sequences without depth)."""
-    lines = ["| method | PSNR (dB) | PSNR on TSDF hits | SSIM | depth L1 (mm) |", "| --- | --- | --- | --- | --- |"]
-    for name, s in scores.items():
-        hits = f"{s['psnr_hits']:.2f}" if "psnr_hits" in s else "-"
-        depth = f"{1000 * s['depth_l1']:.1f}" if "depth_l1" in s else "-"
-        lines.append(f"| {name} | {s['psnr']:.2f} | {hits} | {s['ssim']:.3f} | {depth} |")
-    model = scores["model"]
-    if "within_1" not in model:
-        return lines + ["", "No depth images: depth and calibration are not scored."]
-    return lines + ["", f"Depth calibration (model): {model['within_1']:.2f} / {model['within_2']:.2f} / "
-                    f"{model['within_3']:.2f} of held-out errors within 1/2/3 predicted sigmas."]
 
 
 # -- commands ---------------------------------------------------------------------------------
 def cmd_demo(args) -> int:
-    from .data import load_sample
-
     args.data, args.gt_poses = "sample", False
     seq = load_sample()
     config = _config(args)
@@ -208,7 +190,6 @@ def cmd_demo(args) -> int:
 def cmd_reconstruct(args) -> int:
     out = Path(args.resume or args.out)
     if args.resume:
-        from .config import ReconstructionConfig
 
         saved = _read_run_config(out, "--resume")
         config = ReconstructionConfig.from_dict(saved["config"])
@@ -228,11 +209,8 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_track(args) -> int:
-    from .data import write_log_trajectory, write_tum_trajectory
-    from .tracking import absolute_trajectory_error, track
-
     seq = _load(args)
-    traj = track(seq, progress=not args.quiet)
+    traj = track_sequence(seq, ReconstructionConfig(progress=not args.quiet))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_tum_trajectory(out / "trajectory_tum.txt", traj.poses, seq.timestamps)
@@ -247,12 +225,9 @@ def cmd_track(args) -> int:
 
 
 def cmd_tsdf(args) -> int:
-    from .baselines import tsdf_fusion
-    from .export import write_mesh_ply, write_point_cloud_ply
-
     seq = _load(args)
     out = Path(args.out)
-    poses, _ = _poses_for(seq, args, out)
+    poses, _ = _poses_for(seq, args, ReconstructionConfig(progress=not args.quiet), out)
     volume = tsdf_fusion(seq, poses, voxel_size=args.voxel_size, sdf_trunc=4 * args.voxel_size,
                          return_volume=True, progress=not args.quiet)
     write_mesh_ply(out / "mesh.ply", volume.mesh())
@@ -262,11 +237,6 @@ def cmd_tsdf(args) -> int:
 
 
 def cmd_render(args) -> int:
-    import cv2
-
-    from .errors import InputError
-    from .reconstruction import Reconstruction
-
     recon = Reconstruction.load(args.dir)
     index = None
     if args.pose.isdigit():
@@ -291,11 +261,6 @@ def cmd_render(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from .comparison import compare_with_tsdf
-    from .errors import DatasetError, InputError
-    from .evaluation import heldout_scores
-    from .reconstruction import Reconstruction
-
     folder = Path(args.dir)
     recon = Reconstruction.load(folder)
     if not len(recon.holdout_indices):
@@ -324,15 +289,16 @@ def cmd_evaluate(args) -> int:
     _write_json(out, {"reconstruction": str(folder.resolve()), "sequence": repr(seq),
                       "holdout_frames": recon.holdout_indices.tolist(), "scores": scores})
     print(f"Held-out frames {recon.holdout_indices.tolist()} of {seq!r}:\n")
-    print("\n".join(_scores_table(scores)))
+    print("\n".join(scores_table(scores)))
     print(f"\nwrote {out}")
     return EXIT_OK
 
 
 def _add_training_options(p):
-    p.add_argument("--preset", default="fast", choices=["fast", "quality", "test"], help="configuration preset")
-    p.add_argument("--loss", choices=["pnerf", "photometric", "dsnerf"], help="training loss (default pnerf)")
-    p.add_argument("--field", choices=["grid", "hashgrid", "vanilla"], help="scene field (default hashgrid)")
+    defaults = ReconstructionConfig()
+    p.add_argument("--preset", default="fast", choices=list(ReconstructionConfig.PRESETS), help="configuration preset")
+    p.add_argument("--loss", choices=LOSSES, help=f"training loss (default {defaults.loss})")
+    p.add_argument("--field", choices=list(FIELD_CONFIGS), help=f"scene field (default {defaults.field})")
     p.add_argument("--device", help="torch device: cpu, cuda, cuda:1 (default cpu)")
     p.add_argument("--max-steps", type=int, help="optimiser steps")
     p.add_argument("--time-budget", type=float, help="training time budget in seconds")
@@ -343,10 +309,13 @@ def _add_training_options(p):
                    help="rays per step (under torchrun: the whole batch, split between the ranks)")
     p.add_argument("--refine-poses", action="store_true",
                    help="optimise the training poses with the field, held by their covariances (best with --field grid)")
-    p.add_argument("--dist-backend", choices=["auto", "gloo", "nccl"],
+    p.add_argument("--dist-backend", choices=BACKENDS,
                    help="under torchrun: torch.distributed backend (default auto: nccl on CUDA, gloo on CPU)")
     p.add_argument("--dist-timeout", type=float, metavar="SECONDS",
                    help="under torchrun: how long a rank waits for the others before failing (default 600)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="any config field by its dotted name, e.g. --set sampling.n_coarse=32 --set "
+                   "objective.weights.density=0.2 (repeatable; VALUE read as JSON)")
 
 
 def _add_data_options(p, data=True):
@@ -410,7 +379,6 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.command == "reconstruct" and not (args.data or args.resume):
         parser.error("reconstruct needs DATA or --resume DIR")
-    from .errors import PNeRFError
 
     try:
         return args.func(args)

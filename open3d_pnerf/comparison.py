@@ -12,13 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from ._files import atomic_write
-from .baselines import TSDFVolume, tsdf_fusion
 from .config import ReconstructionConfig
 from .data.sequence import RGBDSequence
 from .errors import InputError
 from .evaluation import geometry_metrics, heldout_renders, score_renders
 from .export import write_mesh_ply
-from .reconstruction import Reconstruction, evenly_spaced, reconstruct
+from .pipeline import reconstruct, training_frames
+from .reconstruction import Reconstruction, evenly_spaced
+from .tsdf import TSDFVolume, tsdf_fusion
 
 
 @dataclasses.dataclass
@@ -102,8 +103,7 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
                          "(set config.holdout_every > 0) and no reference surface was given")
     tsdf = None
     if sequence.has_depth:
-        train = sequence.select(recon.train_indices)
-        train = train.rescaled(train.image_scale * recon.config.image_scale)
+        train = training_frames(sequence, recon.train_indices, recon.config)
         if weight_threshold is None:
             weight_threshold = min(3.0, len(recon.train_indices) / 5)
         depth_max = float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))  # nothing in the box is farther

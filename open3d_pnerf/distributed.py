@@ -32,7 +32,6 @@ from .errors import ConfigError, DistributedError
 
 BACKENDS = ("auto", "gloo", "nccl")
 ENV_KEYS = ("RANK", "WORLD_SIZE", "LOCAL_RANK")
-_created: "DistributedContext | None" = None  # the context whose init_distributed created the process group
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,17 +138,14 @@ def init_distributed(device: str = "cpu", backend: str = "auto", timeout_s: floa
 
     device: the configured torch device ("cpu", "cuda", ...); backend: "auto", "gloo" or
     "nccl"; timeout_s > 0: how long any collective (and joining) may wait for the other
-    ranks. An already initialised process group is used as it is (and left to its creator
-    to destroy), e.g. the CLI's when it calls reconstruct().
+    ranks. An already initialised process group (a caller's own) is used as it is and left
+    to its creator to destroy; its timeout is then the creator's.
     """
-    global _created
     if backend not in BACKENDS:
         raise ConfigError(f"distributed backend {backend!r} is unknown; expected one of {BACKENDS}")
     if isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not timeout_s > 0:
         raise ConfigError(f"distributed timeout {timeout_s!r} is invalid: expected a number of seconds > 0")
     if dist.is_available() and dist.is_initialized():
-        if _created is not None:
-            return dataclasses.replace(_created, owns_group=False)
         local = int(os.environ.get("LOCAL_RANK", 0))
         return DistributedContext(dist.get_rank(), dist.get_world_size(), local, None, owns_group=False)
     env = launch_environment()
@@ -172,16 +168,13 @@ def init_distributed(device: str = "cpu", backend: str = "auto", timeout_s: floa
     except (RuntimeError, ValueError) as exc:  # rendezvous timeouts, refused connections, missing MASTER_*
         raise DistributedError(f"rank {rank} of {world} could not join the {name} process group at {where} within "
                                f"{timeout_s:g} s ({type(exc).__name__}: {str(exc).strip().splitlines()[0]})") from None
-    _created = DistributedContext(rank, world, local, float(timeout_s), owns_group=True)
-    return _created
+    return DistributedContext(rank, world, local, float(timeout_s), owns_group=True)
 
 
 def shutdown(context: DistributedContext) -> None:
     """Destroy the process group if `context` created it (a process exiting without this can abort)."""
-    global _created
     if context.owns_group and dist.is_initialized():
         dist.destroy_process_group()
-        _created = None
 
 
 @contextlib.contextmanager

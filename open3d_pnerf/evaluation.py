@@ -8,16 +8,23 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from .baselines import TSDFVolume
 from .data.sequence import RGBDSequence
 from .errors import InputError
+from .tsdf import TSDFVolume
+
+
+def mse_to_psnr(mse):
+    """PSNR (dB) of a mean squared error of images in [0, 1]: a float (inf for 0), or a tensor
+    (clamped at 100 dB, so that training statistics stay finite)."""
+    if isinstance(mse, torch.Tensor):
+        return -10 * torch.log10(mse.clamp(min=1e-10))
+    return float("inf") if mse == 0 else float(-10 * np.log10(mse))
 
 
 def psnr(pred: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None) -> float:
     """PSNR (dB) of images in [0, 1] (H, W, 3), over `mask` (H, W) pixels if given; inf if equal."""
     err = (np.asarray(pred, np.float64) - np.asarray(target, np.float64)) ** 2
-    mse = err[mask].mean() if mask is not None else err.mean()
-    return float("inf") if mse == 0 else float(-10 * np.log10(mse))
+    return mse_to_psnr(err[mask].mean() if mask is not None else err.mean())
 
 
 def ssim(pred: np.ndarray, target: np.ndarray, window: int = 11) -> float:
@@ -116,7 +123,7 @@ def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = Non
     """
     scale = scale or recon.config.image_scale
     seq = sequence.select(recon.holdout_indices)
-    seq = seq.rescaled(seq.image_scale * scale)
+    seq = seq.scaled_by(scale)
     K, (h, w) = seq.K, seq.image_size
     for k, i in enumerate(recon.holdout_indices):
         frame = seq[k]

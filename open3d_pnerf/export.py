@@ -12,15 +12,8 @@ import numpy as np
 import open3d as o3d
 
 from ._files import atomic_write
-from .baselines import TSDFVolume
-
-
-def backproject(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(M, 3) world points of the masked pixels of a z-depth map (metres)."""
-    v, u = np.nonzero(mask)
-    z = depth[v, u]
-    cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], 1)
-    return cam @ pose[:3, :3].T + pose[:3, 3]
+from .camera import backproject
+from .tsdf import TSDFVolume
 
 
 def point_cloud_from_renders(renders: list[dict], poses, K, min_opacity=0.9, max_std=0.05, voxel_size=0.005):
@@ -33,7 +26,7 @@ def point_cloud_from_renders(renders: list[dict], poses, K, min_opacity=0.9, max
     pts, cols, sig = [], [], []
     for r, pose in zip(renders, poses):
         mask = (r["opacity"] >= min_opacity) & (r["depth_std"] <= max_std) & (r["depth"] > 0)
-        pts.append(backproject(r["depth"], K, pose, mask))
+        pts.append(backproject(r["depth"], K, pose, mask)[0])
         cols.append(r["color"][mask])
         sig.append(r["depth_std"][mask])
     cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.concatenate(pts).astype(np.float32)))

@@ -1,4 +1,5 @@
-"""Training losses as pure functions of renderings and targets (all per-ray means).
+"""Training losses as pure functions of renderings and targets (all per-ray means), and the
+loss methods built from them.
 
 PNeRF: L = Kc L_color + Kd L_density + Kz L_depth, each an L1 over coarse and fine renders:
   L_color   = |C - C*|_1
@@ -8,30 +9,35 @@ PNeRF: L = Kc L_color + Kd L_density + Kz L_depth, each an L1 over coarse and fi
   L_depth   = |sum_k w_k t_k - mu|
 DS-NeRF: sum_k -log(w_k + eps) exp(-(t_k - mu)^2 / (2 sigma^2)) delta_k.
 Depth targets (mu, sigma) are ray distances in metres (z-depth times ||d||); NaN = none.
+
+A method (:class:`LossMethod`) is the colour term plus its own depth terms; ``LOSS_METHODS``
+holds the library's three by name.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import torch
 
-LOSSES = ("pnerf", "photometric", "dsnerf")
-
 
 @dataclasses.dataclass(frozen=True)
-class LossGains:
-    """Gains of the loss terms (colour is in [0, 1], depths in metres)."""
+class LossWeights:
+    """Weights of the loss terms (colour is in [0, 1], depths in metres)."""
 
     color: float = 1.0
     """Kc: colour L1."""
     density: float = 0.5
     """Kd: PNeRF density-PDF L1 (per-ray mass difference, in [0, 2]); at the start of
-    training (see ReconstructionConfig.depth_gain_final_factor)."""
+    training (see ObjectiveConfig.depth_weight_final_factor)."""
     depth: float = 0.5
     """Kz: expected-depth L1, per metre of error; at the start of training."""
     dsnerf: float = 0.05
-    """DS-NeRF ray-distribution loss gain (loss="dsnerf" only)."""
+    """DS-NeRF ray-distribution loss weight (loss="dsnerf" only)."""
+
+
+TERMS = tuple(f.name for f in dataclasses.fields(LossWeights))
 
 
 def color_l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -72,35 +78,96 @@ def dsnerf_loss(weights, t, edges, mu, sigma, eps: float = 1e-5) -> torch.Tensor
     return (-torch.log(weights + eps) * torch.exp(-((t - mu[:, None]) ** 2) / (2 * s * s)) * delta).sum(-1)
 
 
-def total_loss(kind: str, renders, target_rgb, mu, sigma, gains: LossGains = LossGains(),
+class LossMethod:
+    """A training objective: the colour L1 on every ray plus the method's depth terms on the
+    rays that have a depth target. `terms` names them (fields of :class:`LossWeights`)."""
+
+    name = "photometric"
+    terms: tuple[str, ...] = ()
+
+    def depth_terms(self, weights, t, edges, mu, sigma) -> dict[str, torch.Tensor]:
+        """Per-ray (R,) values of each depth term for R rays with targets mu, sigma (R,)."""
+        return {}
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
+
+
+class PNeRFLoss(LossMethod):
+    """The paper's: depth-PDF L1 against the target Gaussian, and expected-depth L1."""
+
+    name = "pnerf"
+    terms = ("density", "depth")
+
+    def depth_terms(self, weights, t, edges, mu, sigma):
+        return {"density": density_l1(weights, edges, mu, sigma), "depth": depth_l1(weights, t, mu)}
+
+
+class DSNeRFLoss(LossMethod):
+    """DS-NeRF's ray-distribution loss."""
+
+    name = "dsnerf"
+    terms = ("dsnerf",)
+
+    def depth_terms(self, weights, t, edges, mu, sigma):
+        return {"dsnerf": dsnerf_loss(weights, t, edges, mu, sigma)}
+
+
+LOSS_METHODS = {m.name: m for m in (PNeRFLoss(), LossMethod(), DSNeRFLoss())}
+LOSSES = tuple(LOSS_METHODS)
+
+
+def loss_method(method: str | LossMethod) -> LossMethod:
+    """The LossMethod of a name in LOSSES (or the method itself)."""
+    if isinstance(method, LossMethod):
+        return method
+    if method not in LOSS_METHODS:
+        raise ValueError(f"unknown loss {method!r}; expected one of {LOSSES}")
+    return LOSS_METHODS[method]
+
+
+def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights: LossWeights = LossWeights(),
                n_rays: int | None = None, n_target: int | None = None) -> dict:
     """Loss terms and their weighted sum over renders (e.g. [fine, coarse]).
 
-    kind: "pnerf", "photometric" or "dsnerf". mu, sigma (R,): ray-distance targets, NaN
+    method: a name in LOSSES or a LossMethod. mu, sigma (R,): ray-distance targets, NaN
     where a ray has none (those rays get the colour term only). Returns a dict of scalar
     tensors: "loss" (the total) and each term summed over the renders.
     n_rays, n_target: when these R rays are a share of a larger batch, that batch's ray
     count and count of rays with a target; every per-ray mean is then taken over the whole
     batch, so the shares' losses (and gradients) add up to the whole batch's.
     """
-    if kind not in LOSSES:
-        raise ValueError(f"unknown loss {kind!r}; expected one of {LOSSES}")
+    method = loss_method(method)
     has = torch.isfinite(mu)
     n_target = has.sum().clamp(min=1) if n_target is None else max(n_target, 1)
     share = 1.0 if n_rays is None else len(target_rgb) / n_rays  # colour: this share's part of the batch mean
     mu_v, sigma_v = mu[has], sigma[has]
-    terms = {"color": 0.0, "density": 0.0, "depth": 0.0, "dsnerf": 0.0}
+    terms = dict.fromkeys(TERMS, 0.0)
     for r in renders:
         terms["color"] = terms["color"] + color_l1(r.color, target_rgb) * share
-        if kind == "photometric" or not has.any():
+        if not method.terms or not has.any():
             continue
-        w, t, e = r.weights[has], r.t[has], r.edges[has]
-        if kind == "pnerf":
-            terms["density"] = terms["density"] + density_l1(w, e, mu_v, sigma_v).sum() / n_target
-            terms["depth"] = terms["depth"] + depth_l1(w, t, mu_v).sum() / n_target
-        else:
-            terms["dsnerf"] = terms["dsnerf"] + dsnerf_loss(w, t, e, mu_v, sigma_v).sum() / n_target
-    total = sum(getattr(gains, k) * v for k, v in terms.items())
+        per_ray = method.depth_terms(r.weights[has], r.t[has], r.edges[has], mu_v, sigma_v)
+        for name, values in per_ray.items():
+            terms[name] = terms[name] + values.sum() / n_target
+    total = sum(getattr(weights, k) * v for k, v in terms.items())
     terms = {k: torch.as_tensor(v) for k, v in terms.items()}
     terms["loss"] = total
     return terms
+
+
+RENAMED = {"LossGains": "LossWeights"}  # old name -> new name ("gains" are the cameras' exposure gains)
+
+
+def renamed(name: str):
+    """The object behind a renamed name, with a DeprecationWarning pointing at the caller of
+    the module's __getattr__."""
+    warnings.warn(f"{name} is deprecated: use {RENAMED[name]} (loss weights; 'gains' are camera exposure)",
+                  DeprecationWarning, stacklevel=3)
+    return globals()[RENAMED[name]]
+
+
+def __getattr__(name: str):
+    if name in RENAMED:
+        return renamed(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
+from .camera import camera_rays, pixel_grid
+
 
 def pinhole_rays(pose: np.ndarray, K: np.ndarray, width: int, height: int) -> o3d.core.Tensor:
     """(H, W, 6) float32 rays of a pinhole camera: origin and direction R @ K^-1 [u, v, 1].
@@ -14,9 +16,8 @@ def pinhole_rays(pose: np.ndarray, K: np.ndarray, width: int, height: int) -> o3
     create_rays_pinhole (which casts through u + 0.5), pixel centres are integers.
     """
     pose = np.asarray(pose, np.float64)
-    u, v = np.meshgrid(np.arange(width), np.arange(height))
-    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((height, width))], -1)
-    d_world = d_cam @ pose[:3, :3].T
+    u, v = pixel_grid(height, width)
+    d_world = camera_rays(K, u, v) @ pose[:3, :3].T
     origins = np.broadcast_to(pose[:3, 3], d_world.shape)
     return o3d.core.Tensor(np.concatenate([origins, d_world], -1).astype(np.float32))
 

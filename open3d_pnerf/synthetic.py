@@ -17,17 +17,19 @@ import dataclasses
 import numpy as np
 import open3d as o3d
 
-from .data.sequence import RGBDSequence, check_intrinsic, check_poses
+from .camera import backproject, check_intrinsic, check_poses, intrinsic_matrix
+from .data.sequence import RGBDSequence
 from .errors import InputError
-from .export import backproject
 from .raycast import pinhole_rays
+from .targets.noise import SensorNoise
 
 
 @dataclasses.dataclass(frozen=True)
 class DepthNoise:
     """A structured-light depth sensor's errors (defaults: a Kinect v1 / Xtion).
 
-    axial: sigma_z(z) = axial[0] + axial[1] * (z - 0.4)^2 metres (Nguyen et al. 2012);
+    sensor: the random axial noise sigma_z(z) (:class:`~open3d_pnerf.targets.SensorNoise`, the
+    model the depth targets assume; its systematic part is not simulated);
     disparity_step: focal * baseline / subpixel (m px); depth is quantised in disparity, so
     the step grows as z^2 / disparity_step (0 = no quantisation); grazing_cos: pixels whose
     surface is seen at |cos(angle)| below this are missing; edge_jump: pixels next to a
@@ -35,7 +37,7 @@ class DepthNoise:
     dropout: random missing pixels; range_m: (near, far) measurable depth.
     """
 
-    axial: tuple[float, float] = (0.0012, 0.0019)
+    sensor: SensorNoise = SensorNoise()
     disparity_step: float = 525 * 0.075 * 8
     grazing_cos: float = 0.15
     edge_jump: float = 0.04
@@ -46,11 +48,11 @@ class DepthNoise:
     @classmethod
     def none(cls) -> "DepthNoise":
         """Exact depth (still zero outside range_m)."""
-        return cls(axial=(0.0, 0.0), disparity_step=0.0, grazing_cos=0.0, edge_dropout=0.0, dropout=0.0)
+        return cls(sensor=SensorNoise(a=0.0, b=0.0), disparity_step=0.0, grazing_cos=0.0, edge_dropout=0.0, dropout=0.0)
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
         """Axial noise std (m) at z-depth z (m)."""
-        return self.axial[0] + self.axial[1] * (np.asarray(z) - 0.4) ** 2
+        return self.sensor.sigma(np.asarray(z))
 
     def apply(self, depth: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Noisy copy of an exact z-depth map (H, W) m; 0 marks missing pixels."""
@@ -108,7 +110,7 @@ class SyntheticScene:
         no surface), cos_incidence (H, W) |cos| between ray and surface normal.
         """
         intrinsic = check_intrinsic(intrinsic)
-        rays = pinhole_rays(pose, np.asarray(intrinsic.intrinsic_matrix), intrinsic.width, intrinsic.height)
+        rays = pinhole_rays(pose, intrinsic_matrix(intrinsic), intrinsic.width, intrinsic.height)
         hits = self._scene.cast_rays(rays)
         rays = rays.numpy()
         depth = hits["t_hit"].numpy()  # directions have unit camera-z: t = z-depth
@@ -131,11 +133,11 @@ class SyntheticScene:
         """The ground-truth surface seen by the cameras `poses` (N, 4, 4): exact hit points,
         one per `voxel_size` voxel (a hit point, not a voxel average, so every point lies on
         the surface). The reference for completeness (unseen surfaces do not count)."""
-        K = np.asarray(intrinsic.intrinsic_matrix)
+        K = intrinsic_matrix(intrinsic)
         kept, keys = np.zeros((0, 3)), np.zeros(0, np.int64)
         for pose in check_poses(poses):
             depth = self.render(pose, intrinsic)["depth"]
-            pts = backproject(depth, K, pose, depth > 0)
+            pts = backproject(depth, K, pose)[0]
             cell = np.floor(pts / voxel_size).astype(np.int64) + (1 << 20)  # voxel index >= 0 (to 10 km at 1 cm)
             new_keys = (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
             keys, first = np.unique(np.concatenate([keys, new_keys]), return_index=True)  # first hit per voxel

@@ -1,6 +1,7 @@
-"""Training: rays drawn from images on the fly, Adam with an exponential schedule, held-out
-evaluation, atomic checkpoints, clean stop on Ctrl-C and on a NaN loss; data-parallel over
-the ranks of a torchrun launch (see :mod:`open3d_pnerf.distributed`)."""
+"""Training: Adam with an exponential schedule over a PNeRFModel, held-out evaluation, atomic
+checkpoints, clean stop on Ctrl-C and on a NaN loss; data-parallel over the ranks of a
+torchrun launch (see :mod:`open3d_pnerf.distributed`). What is rendered and how it is scored
+is the model's business (:mod:`open3d_pnerf.model`); this module only optimises."""
 
 from __future__ import annotations
 
@@ -8,144 +9,28 @@ import dataclasses
 import signal
 import threading
 import time
-from collections import OrderedDict
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
 from ._files import atomic_write
+from .batches import RayBatcher
 from .config import ReconstructionConfig
-from .data.sequence import RGBDSequence
 from .distributed import DistributedContext
 from .errors import CheckpointError, ConfigError, TrainingError
-from .losses import LossGains, total_loss
-from .pose_refinement import PoseCorrections
-from .rendering import BatchShare, Rays, SamplingConfig, make_rays, render_rays
-from .rendering.exposure import ExposureGains
-from .targets import DepthTargets, ray_norms
+from .evaluation import mse_to_psnr
+from .losses import LossWeights
+from .model import PNeRFModel
+from .rendering import BatchShare
 
 CHECKPOINT_VERSION = 1
 
 
-@dataclasses.dataclass
-class RayBatch:
-    """R training rays with what they saw: rgb (R, 3) in [0, 1], depth target mean and sigma
-    (R,) ray-distance metres (NaN = none), and frames (R,) the index of each ray's frame."""
-
-    rays: Rays
-    rgb: torch.Tensor
-    mean: torch.Tensor
-    sigma: torch.Tensor
-    frames: torch.Tensor
-
-    def __len__(self) -> int:
-        return len(self.rays)
-
-    def __getitem__(self, index) -> "RayBatch":
-        return RayBatch(self.rays[index], self.rgb[index], self.mean[index], self.sigma[index], self.frames[index])
-
-
-class RayBatcher:
-    """Draws random training rays from a bounded cache of decoded frames.
-
-    sequence: the training frames at training resolution; poses (N, 4, 4) camera-to-world;
-    targets: their DepthTargets (same resolution) or None. At most `cache_frames` frames
-    are decoded at a time; with more frames the cache rotates one frame every
-    `refresh_every` steps, in a seeded order, so memory stays bounded on long sequences.
-    pose_corrections: a PoseCorrections of the N frames when poses are refined (the Trainer
-    optimises it); rays then start from the corrected poses.
-    """
-
-    def __init__(self, sequence: RGBDSequence, poses, targets: DepthTargets | None, aabb, device, seed: int,
-                 cache_frames: int = 64, refresh_every: int = 4, pose_corrections: PoseCorrections | None = None):
-        self.sequence, self.targets, self.device = sequence, targets, device
-        self.poses = torch.as_tensor(np.asarray(poses), dtype=torch.float32, device=device)
-        self.K = torch.as_tensor(np.array(sequence.K), dtype=torch.float32, device=device)
-        self.aabb = aabb
-        self.height, self.width = sequence.image_size
-        self.norms = torch.as_tensor(ray_norms(sequence.K, self.height, self.width), device=device)
-        self.capacity = min(cache_frames, len(sequence))
-        self.refresh_every = refresh_every
-        self.order_rng = np.random.default_rng(seed)
-        self.queue: list[int] = []
-        self.cache: OrderedDict[int, tuple] = OrderedDict()
-        self.draws = 0
-        self.pose_corrections = pose_corrections
-        while len(self.cache) < self.capacity:
-            self._load(self._next_frame())
-
-    def _next_frame(self) -> int:
-        if not self.queue:
-            self.queue = [int(i) for i in self.order_rng.permutation(len(self.sequence)) if i not in self.cache]
-        return int(self.queue.pop())
-
-    def _load(self, i: int) -> None:
-        frame = self.sequence[i]
-        color = torch.as_tensor(self.sequence.color_on_depth_grid(frame.color), device=self.device).float().div_(255).view(-1, 3)
-        if self.targets is not None:
-            valid = torch.as_tensor(np.asarray(self.targets.valid[i]), device=self.device).view(-1)
-            norms = self.norms.view(-1)
-            mean = torch.as_tensor(np.asarray(self.targets.mean[i]), device=self.device).view(-1) * norms
-            sigma = torch.as_tensor(np.asarray(self.targets.sigma[i]), device=self.device).view(-1) * norms
-            mean = torch.where(valid, mean, torch.full_like(mean, float("nan")))
-        else:
-            mean = sigma = None
-        self.cache[i] = (color, mean, sigma)
-
-    def sample(self, n: int, generator: torch.Generator) -> RayBatch:
-        """n random rays of the cached frames, with their colours, depth targets and frames."""
-        self.draws += 1
-        if len(self.cache) < len(self.sequence) and self.draws % self.refresh_every == 0:
-            self.cache.popitem(last=False)
-            self._load(self._next_frame())
-        ids = list(self.cache)
-        which = torch.randint(len(ids), (n,), generator=generator).to(self.device)  # drawn on the CPU generator
-        pix = torch.randint(self.height * self.width, (n,), generator=generator).to(self.device)
-        frame_ids = torch.tensor(ids, device=self.device)[which]
-        rgb = torch.empty(n, 3, device=self.device)
-        mean = torch.full((n,), float("nan"), device=self.device)
-        sigma = torch.full((n,), float("nan"), device=self.device)
-        for slot, i in enumerate(ids):
-            sel = which == slot
-            if not sel.any():
-                continue
-            color, m, s = self.cache[i]
-            rgb[sel] = color[pix[sel]]
-            if m is not None:
-                mean[sel], sigma[sel] = m[pix[sel]], s[pix[sel]]
-        u = (pix % self.width).float().to(self.device)
-        v = (pix // self.width).float().to(self.device)
-        poses = self.poses[frame_ids]
-        if self.pose_corrections is not None:
-            poses = self.pose_corrections(poses, frame_ids)
-        rays = make_rays(poses, self.K, u, v, self.aabb)
-        return RayBatch(rays, rgb, mean, sigma, frame_ids)
-
-    def state(self) -> dict:
-        """Plain ints/dicts only, so checkpoints load with torch.load(weights_only=True)."""
-        return {"cache": [int(i) for i in self.cache], "queue": list(self.queue), "draws": self.draws,
-                "order_rng": self.order_rng.bit_generator.state}
-
-    def restore(self, state: dict) -> None:
-        self.cache.clear()
-        for i in state["cache"]:
-            self._load(int(i))
-        self.queue = [int(i) for i in state["queue"]]
-        self.draws = int(state["draws"])
-        self.order_rng.bit_generator.state = state["order_rng"]
-
-
-def sampling_of(config: ReconstructionConfig) -> SamplingConfig:
-    """Samples per ray; every loss gets the same count (guided ones become importance ones without targets)."""
-    return SamplingConfig(config.n_coarse, config.n_fine, config.n_guided)
-
-
 class Trainer:
-    """Optimises a field on rays from a :class:`RayBatcher`.
+    """Optimises a :class:`~open3d_pnerf.model.PNeRFModel` on pixels from a :class:`RayBatcher`.
 
-    eval_rays: optional (Rays, rgb) of held-out pixels scored every `config.eval_every`
+    eval_rays: optional (Rays, rgb) of held-out pixels scored every `runtime.eval_every`
     steps. checkpoint_dir: where ``checkpoint.pt`` is written atomically (by rank 0 only).
     dist: this process's place in a data-parallel run (default: a single process). With
     several ranks each step renders this rank's share of the same `rays_per_batch` rays,
@@ -153,28 +38,25 @@ class Trainer:
     budget and the schedule; a Ctrl-C on any rank stops every rank after the same step.
     """
 
-    def __init__(self, field, batcher: RayBatcher, config: ReconstructionConfig, eval_rays=None,
+    def __init__(self, model: PNeRFModel, batcher: RayBatcher, config: ReconstructionConfig, eval_rays=None,
                  checkpoint_dir: str | Path | None = None, dist: DistributedContext | None = None):
-        self.field, self.batcher, self.config = field, batcher, config
-        self.pose_corrections = batcher.pose_corrections
+        self.model, self.batcher, self.config = model, batcher, config
         self.dist = dist or DistributedContext()
-        if config.rays_per_batch < self.dist.world_size:
-            raise ConfigError(f"config field rays_per_batch={config.rays_per_batch} is invalid: "
+        opt = config.optimizer
+        if opt.rays_per_batch < self.dist.world_size:
+            raise ConfigError(f"config field optimizer.rays_per_batch={opt.rays_per_batch} is invalid: "
                               f"{self.dist.world_size} ranks need at least one ray each")
         self.eval_rays = eval_rays
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
-        self.exposure = (ExposureGains(len(batcher.sequence), batcher.device)
-                         if config.exposure_compensation else None)
-        fused = dict(fused=True) if _fused_adam_ok(field) else {}
-        groups = [{"params": list(field.parameters()), "lr": config.lr}]
-        if self.pose_corrections is not None:
-            groups.append({"params": list(self.pose_corrections.parameters()), "lr": config.pose_lr})
-        if self.exposure is not None:
-            groups.append({"params": list(self.exposure.parameters()), "lr": config.lr})
-        self.optimizer = torch.optim.Adam(groups, betas=(0.9, config.adam_beta2), eps=1e-15, **fused)
+        fused = dict(fused=True) if _fused_adam_ok(model.field) else {}
+        groups = [{"params": list(model.field.parameters()), "lr": opt.lr}]
+        if model.pose_corrections is not None:
+            groups.append({"params": list(model.pose_corrections.parameters()), "lr": opt.pose_lr})
+        if model.exposure is not None:
+            groups.append({"params": list(model.exposure.parameters()), "lr": opt.lr})
+        self.optimizer = torch.optim.Adam(groups, betas=(0.9, opt.adam_beta2), eps=1e-15, **fused)
         self._initial_lrs = [g["lr"] for g in groups]
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.sampling = sampling_of(config)
         self.step = 0
         self.elapsed = 0.0
         self.history: list[dict] = []
@@ -189,14 +71,15 @@ class Trainer:
         return min(frac, 1.0)
 
     def _set_lr(self) -> None:
-        decay = self.config.lr_final_factor ** self._progress_fraction()
+        decay = self.config.optimizer.lr_final_factor ** self._progress_fraction()
         for group, lr in zip(self.optimizer.param_groups, self._initial_lrs):
             group["lr"] = lr * decay
 
-    def _gains(self) -> LossGains:
-        """config.gains with Kd and Kz decayed by depth_gain_final_factor ** progress."""
-        g, f = self.config.gains, self.config.depth_gain_final_factor ** self._progress_fraction()
-        return dataclasses.replace(g, density=g.density * f, depth=g.depth * f)
+    def loss_weights(self) -> LossWeights:
+        """objective.weights with Kd and Kz decayed by depth_weight_final_factor ** progress."""
+        objective = self.config.objective
+        w, f = objective.weights, objective.depth_weight_final_factor ** self._progress_fraction()
+        return dataclasses.replace(w, density=w.density * f, depth=w.depth * f)
 
     def _done(self) -> bool:
         if self.step >= self.config.max_steps:
@@ -206,33 +89,22 @@ class Trainer:
     # -- one step ------------------------------------------------------------------------
     def train_step(self) -> dict:
         """One optimiser step on `rays_per_batch` rays: {"loss": ..., "psnr": ...} of the whole batch."""
-        batch = self.batcher.sample(self.config.rays_per_batch, self.generator)
+        batch = self.batcher.sample(self.config.optimizer.rays_per_batch, self.generator)
         noise, whole = self.generator, {}
         if self.dist.enabled:  # every rank drew the same batch; render this rank's rows with the batch's noise
             rows = self.dist.share(len(batch))
             whole = {"n_rays": len(batch), "n_target": int(torch.isfinite(batch.mean).sum())}
             noise = BatchShare(self.generator, len(batch), rows.start, rows.stop)
             batch = batch[rows]
-        rgb, mean, sigma = batch.rgb, batch.mean, batch.sigma
-        guide = self.config.loss != "photometric" and self.config.depth_guided_sampling
-        fine, coarse = render_rays(
-            self.field, batch.rays, self.sampling, mean if guide else None, sigma if guide else None,
-            noise, with_coarse=self.config.coarse_loss,
-        )
-        renders = [fine] + ([coarse] if coarse is not None else [])
-        if self.exposure is not None:  # the colours as each ray's frame recorded them
-            renders = [dataclasses.replace(r, color=self.exposure(r.color, batch.frames)) for r in renders]
-            fine = renders[0]
-        terms = total_loss(self.config.loss, renders, rgb, mean, sigma, self._gains(), **whole)
-        loss = terms["loss"]
-        if self.pose_corrections is not None:  # each rank adds its share of the prior
-            loss = loss + self.config.pose_prior_weight * self.pose_corrections.prior() / self.dist.world_size
+        renders = self.model(batch, noise)
+        loss = self.model.loss(renders, batch, self.loss_weights(), **whole)["loss"]
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        fine = renders[0]
         loss, samples = loss.detach(), fine.t.numel()
-        mse = ((fine.color.detach() - rgb) ** 2).mean()
+        mse = ((fine.color.detach() - batch.rgb) ** 2).mean()
         if self.dist.enabled:
-            loss, mse, samples = self._sum_over_ranks(loss, mse * (len(rgb) / whole["n_rays"]), samples)
+            loss, mse, samples = self._sum_over_ranks(loss, mse * (len(batch) / whole["n_rays"]), samples)
         if not torch.isfinite(loss):
             raise TrainingError(
                 f"loss became {loss.item()} at step {self.step}; stopped. "
@@ -242,7 +114,7 @@ class Trainer:
             )
         self.optimizer.step()
         self.samples_seen += samples
-        return {"loss": float(loss), "psnr": float(-10 * torch.log10(mse.clamp(min=1e-10)))}
+        return {"loss": float(loss), "psnr": float(mse_to_psnr(mse))}
 
     def _sum_over_ranks(self, loss: torch.Tensor, mse: torch.Tensor, samples: int):
         """Sum the gradients and this step's (loss, mse, samples) shares over the ranks (in place).
@@ -262,13 +134,12 @@ class Trainer:
 
     def _trained_parameters(self) -> list[torch.Tensor]:
         """The field's parameters, then the pose corrections' and exposure gains' (when used)."""
-        extra = [p for m in (self.pose_corrections, self.exposure) if m is not None for p in m.parameters()]
-        return list(self.field.parameters()) + extra
+        return [p for group in self.optimizer.param_groups for p in group["params"]]
 
     def _agree(self, elapsed: float) -> tuple[float, bool]:
         """(rank 0's elapsed seconds, whether Ctrl-C hit any rank): every rank then sets the
         same learning rate and stops after the same step."""
-        device = next(self.field.parameters()).device
+        device = self.model.device
         t = torch.tensor([elapsed if self.dist.is_main else 0.0, float(self._stop_requested)],
                          dtype=torch.float64, device=device)
         self.dist.sum_([t], f"the clock agreement after step {self.step}")
@@ -279,9 +150,8 @@ class Trainer:
         if self.eval_rays is None:
             return {}
         rays, rgb = self.eval_rays
-        out = render_field(self.field, rays, self.sampling)
-        mse = ((out["color"] - rgb) ** 2).mean()
-        return {"eval_psnr": float(-10 * torch.log10(mse.clamp(min=1e-10)))}
+        out = self.model.render(rays, keys=("color",))
+        return {"eval_psnr": float(mse_to_psnr(((out["color"] - rgb) ** 2).mean()))}
 
     # -- loop --------------------------------------------------------------------------
     @property
@@ -318,11 +188,11 @@ class Trainer:
                 if self.dist.enabled:
                     self.elapsed, interrupted = self._agree(self.elapsed)
                 bar.update(1)
-                if self.step % cfg.eval_every == 0 or self._done():
+                if self.step % cfg.runtime.eval_every == 0 or self._done():
                     stats.update(self.evaluate())
                     self.history.append({"step": self.step, "seconds": round(self.elapsed, 2), **stats})
                 bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}")
-                if self.checkpoint_dir and main and self.step % cfg.checkpoint_every == 0:
+                if self.checkpoint_dir and main and self.step % cfg.runtime.checkpoint_every == 0:
                     self.save_checkpoint()
                 if interrupted:  # a Ctrl-C on some rank, agreed by all after this step
                     break
@@ -358,14 +228,15 @@ class Trainer:
 
     # -- checkpoints ---------------------------------------------------------------------
     def state_dict(self) -> dict:
+        model = self.model
         return {
             "version": CHECKPOINT_VERSION,
             "step": self.step,
             "elapsed": self.elapsed,
             "samples_seen": self.samples_seen,
-            "field": self.field.state_dict(),
-            **({"poses": self.pose_corrections.state_dict()} if self.pose_corrections is not None else {}),
-            **({"exposure": self.exposure.state_dict()} if self.exposure is not None else {}),
+            "field": model.field.state_dict(),
+            **({"poses": model.pose_corrections.state_dict()} if model.pose_corrections is not None else {}),
+            **({"exposure": model.exposure.state_dict()} if model.exposure is not None else {}),
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "batcher": self.batcher.state(),
@@ -385,11 +256,12 @@ class Trainer:
         """
         state = read_checkpoint(path) if state is None else state
         try:
-            self.field.load_state_dict(state["field"])
-            if self.pose_corrections is not None:
-                self.pose_corrections.load_state_dict(state["poses"])
-            if self.exposure is not None:
-                self.exposure.load_state_dict(state["exposure"])
+            model = self.model
+            model.field.load_state_dict(state["field"])
+            if model.pose_corrections is not None:
+                model.pose_corrections.load_state_dict(state["poses"])
+            if model.exposure is not None:
+                model.exposure.load_state_dict(state["exposure"])
             self.optimizer.load_state_dict(state["optimizer"])
             self.generator.set_state(state["generator"])
             self.batcher.restore(state["batcher"])
@@ -423,22 +295,3 @@ def safe_torch_load(path) -> dict:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # unpickling errors, truncated files, foreign objects
         raise CheckpointError(f"{path}: not a valid open3d_pnerf checkpoint ({type(exc).__name__}: {exc})") from None
-
-
-@torch.no_grad()
-def render_field(field, rays, sampling: SamplingConfig, chunk: int = 2048,
-                 keys: tuple = ("color", "depth", "depth_var", "opacity")) -> dict:
-    """Render rays in chunks without gradient (deterministic mid-bin samples).
-
-    Returns the :class:`~open3d_pnerf.rendering.RayRender` fields named by `keys`: by default
-    color (R, 3), depth (R,) expected ray distance, depth_var (R,), opacity (R,); also
-    t (R, S), edges (R, S + 1), weights (R, S) with S = n_coarse + n_fine + n_guided.
-    """
-    outs = {k: [] for k in keys}
-    inference = SamplingConfig(sampling.n_coarse, sampling.n_fine + sampling.n_guided, 0)
-    for start in range(0, len(rays), chunk):
-        fine, _ = render_rays(field, rays[start : start + chunk], inference, jitter=False)
-        for k in outs:
-            outs[k].append(getattr(fine, k))
-    return {k: torch.cat(v) for k, v in outs.items()}
-

@@ -70,11 +70,10 @@ def tiny_reconstruction(shift: float = 0.0):
     import torch
 
     from open3d_pnerf import Reconstruction, ReconstructionConfig
-    from open3d_pnerf.reconstruction import build_field
 
-    config = ReconstructionConfig.preset("test", field="grid", grid_resolutions=(8, 16), progress=False)
+    config = ReconstructionConfig.preset("test", field="grid", progress=False, **{"grid.resolutions": (8, 16)})
     aabb = np.array([[-1, -1, 0], [1, 1, 3]], np.float32) + shift
-    field = build_field(config, aabb)
+    field = config.build_field(aabb)
     with torch.no_grad():
         for p in field.parameters():
             p.add_(shift)

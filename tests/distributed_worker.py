@@ -18,19 +18,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-import open3d_pnerf.training as training
+import open3d_pnerf.model as model
 from open3d_pnerf import ReconstructionConfig, load_sample, reconstruct
 
 
 def main(out: Path, overrides: dict) -> None:
     rays_per_call = []
-    real_render_rays = training.render_rays
+    real_render_rays = model.render_rays
 
     def counting_render_rays(field, rays, *args, **kwargs):
         rays_per_call.append(len(rays))
         return real_render_rays(field, rays, *args, **kwargs)
 
-    training.render_rays = counting_render_rays
+    model.render_rays = counting_render_rays
     seq = load_sample()
     config = ReconstructionConfig.preset("test", **{"progress": False, **overrides})
     recon = reconstruct(seq, config, poses=seq.gt_poses, covariances=np.zeros((len(seq), 6, 6)),

@@ -8,16 +8,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from conftest import tiny_reconstruction
 
 import open3d_pnerf.reconstruction as reconstruction_module
 from open3d_pnerf import Reconstruction, ReconstructionConfig
-from open3d_pnerf.reconstruction import build_field, scene_box
+from open3d_pnerf.batches import RayBatcher
+from open3d_pnerf.model import build_model
+from open3d_pnerf.pipeline import scene_box
 from open3d_pnerf.targets import depth_targets
-from open3d_pnerf.training import RayBatcher, Trainer, read_checkpoint
-
-from conftest import tiny_reconstruction
+from open3d_pnerf.training import Trainer, read_checkpoint
 
 
 def snapshot(folder: Path) -> dict[str, bytes]:
@@ -59,11 +61,11 @@ def test_a_crash_mid_save_leaves_the_previous_files_intact(tmp_path, monkeypatch
 
 def test_a_crash_mid_checkpoint_leaves_the_previous_checkpoint_intact(tmp_path, monkeypatch, plane_scene):
     seq, poses = plane_scene()
-    config = ReconstructionConfig.preset("test", field="grid", grid_resolutions=(8, 16), progress=False, max_steps=2)
+    config = ReconstructionConfig.preset("test", field="grid", progress=False, max_steps=2,
+                                         **{"grid.resolutions": (8, 16)})
     targets = depth_targets(seq, poses=poses, progress=False)
-    field = build_field(config, scene_box(targets, poses, seq.K))
-    trainer = Trainer(field, RayBatcher(seq, poses, targets, field.aabb, "cpu", config.seed), config,
-                      checkpoint_dir=tmp_path)
+    model = build_model(config, scene_box(targets, poses, seq.K), poses, seq.K, np.zeros((len(seq), 6, 6)))
+    trainer = Trainer(model, RayBatcher(seq, targets, "cpu", config.seed), config, checkpoint_dir=tmp_path)
     trainer.train()
     path = tmp_path / "checkpoint.pt"
     before = path.read_bytes()

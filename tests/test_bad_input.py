@@ -22,6 +22,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import torch
+from conftest import tiny_reconstruction
 from scipy.spatial.transform import Rotation
 
 from open3d_pnerf import (
@@ -34,10 +35,9 @@ from open3d_pnerf import (
     track,
     tsdf_fusion,
 )
+from open3d_pnerf.config import OptimizerConfig
 from open3d_pnerf.data import read_log_trajectory, write_log_trajectory
 from open3d_pnerf.errors import CheckpointError, ConfigError, DatasetError, InputError, PoseError
-
-from conftest import tiny_reconstruction
 
 W, H = 32, 24
 
@@ -47,7 +47,7 @@ def pinhole(w=W, h=H, fx=30.0, fy=30.0, cx=15.5, cy=11.5):
 
 
 K = pinhole()
-CONFIG = ReconstructionConfig.preset("test", field="grid", grid_resolutions=(8, 16), progress=False)
+CONFIG = ReconstructionConfig.preset("test", field="grid", progress=False, **{"grid.resolutions": (8, 16)})
 
 
 # -- builders of good inputs -------------------------------------------------------------------
@@ -361,13 +361,17 @@ CASES = [
     Case("config-unknown-value", nothing, lambda _: ReconstructionConfig.preset("test", loss="l2"), ConfigError,
          ("loss", "'l2'", "pnerf")),
     Case("config-negative-systematic-sigma", nothing,
-         lambda _: ReconstructionConfig.preset("test", depth_sigma_relative=-0.02), ConfigError,
+         lambda _: ReconstructionConfig.preset("test", **{"targets.depth_sigma_relative": -0.02}), ConfigError,
          ("depth_sigma_relative", "[0, 1)")),
-    Case("config-adam-beta2-one", nothing, lambda _: ReconstructionConfig.preset("test", adam_beta2=1.0), ConfigError,
+    Case("config-adam-beta2-one", nothing,
+         lambda _: ReconstructionConfig.preset("test", **{"optimizer.adam_beta2": 1.0}), ConfigError,
          ("adam_beta2", "[0, 1)")),
+    Case("config-sub-config-not-a-dict", nothing, lambda _: ReconstructionConfig.preset("test", sampling=16),
+         ConfigError, ("sampling=16", "dict")),
     Case("config-unknown-preset", nothing, lambda _: ReconstructionConfig.preset("tiny"), ConfigError, ("tiny", "fast")),
     Case("config-invalid-reaches-reconstruct", lambda t: memory(),
-         lambda s: reconstruct(s, dataclasses.replace(CONFIG, rays_per_batch=0), poses=POSES), ConfigError,
+         lambda s: reconstruct(s, dataclasses.replace(CONFIG, optimizer=OptimizerConfig(rays_per_batch=0)),
+                               poses=POSES), ConfigError,
          ("rays_per_batch=0", "an int >= 1")),
     Case("config-not-a-config", lambda t: memory(), lambda s: reconstruct(s, {"max_steps": 5}, poses=POSES), InputError,
          ("config", "ReconstructionConfig", "dict")),
@@ -393,8 +397,8 @@ CASES = [
          CheckpointError, ("reconstruction.json", "bogus")),
     Case("saved-model-truncated", edit(saved, lambda r: truncate(r / "model.pt")), Reconstruction.load, CheckpointError,
          ("model.pt", "not a valid")),
-    Case("saved-model-of-another-config", edit(saved, edit_meta(config={"grid_resolutions": [8]})), Reconstruction.load,
-         CheckpointError, ("model.pt", "do not match")),
+    Case("saved-model-of-another-config", edit(saved, edit_meta(config={"field": "grid", "grid": {"resolutions": [8]}})),
+         Reconstruction.load, CheckpointError, ("model.pt", "do not match")),
     Case("saved-poses-missing", edit(saved, lambda r: (r / "poses.npy").unlink()), Reconstruction.load, CheckpointError,
          ("poses.npy", "missing")),
     Case("saved-poses-wrong-shape", edit(saved, lambda r: np.save(r / "poses.npy", POSES[:2])), Reconstruction.load,

@@ -158,3 +158,33 @@ def test_refine_poses_option_reaches_the_config():
     parser = cli.build_parser()
     assert cli._config(parser.parse_args(["reconstruct", "sample", "--refine-poses"])).refine_poses is True
     assert cli._config(parser.parse_args(["reconstruct", "sample"])).refine_poses is False
+
+
+@pytest.mark.slow
+def test_the_cli_and_the_python_api_track_the_same_data_the_same_way(tmp_path):
+    """One pipeline: `reconstruct` on the command line and pn.reconstruct() give the same poses
+    and covariances for the same input and settings (here a non-default covariance scale)."""
+    import open3d_pnerf as pn
+
+    out = tmp_path / "cli"
+    args = ["--quiet", "reconstruct", "sample", "--frames", "0:6", "--preset", "test", "--max-steps", "2",
+            "--set", "tracking.covariance_scale=3.0", "--out", str(out)]
+    assert cli.main(args) == 0
+    config = pn.ReconstructionConfig.preset("test", max_steps=2, progress=False, **{"tracking.covariance_scale": 3.0})
+    recon = pn.reconstruct(pn.load_sample().select(range(6)), config)
+    np.testing.assert_array_equal(np.load(out / "poses.npy"), recon.poses)
+    np.testing.assert_array_equal(np.load(out / "covariances.npy"), recon.covariances)
+    # the setting reached both: the default scale (2.0) gives covariances (3 / 2)^2 smaller
+    default = pn.track(pn.load_sample().select(range(6)), progress=False)
+    np.testing.assert_allclose(recon.covariances, default.covariances * 2.25, rtol=1e-9)
+
+
+def test_set_reaches_the_config_and_rejects_unknown_names(capsys):
+    parser = cli.build_parser()
+    config = cli._config(parser.parse_args(["reconstruct", "sample", "--set", "sampling.n_coarse=24",
+                                            "--set", "grid.resolutions=[8, 16]", "--set", "field=grid"]))
+    assert config.sampling.n_coarse == 24 and config.grid.resolutions == (8, 16) and config.field == "grid"
+    assert cli.main(["--quiet", "reconstruct", "sample", "--set", "sampling.n=8"]) == cli.EXIT_ERROR
+    assert "sampling.n" in capsys.readouterr().err
+    assert cli.main(["--quiet", "reconstruct", "sample", "--set", "n_coarse"]) == cli.EXIT_ERROR
+    assert "KEY=VALUE" in capsys.readouterr().err

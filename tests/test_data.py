@@ -12,7 +12,7 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-import open3d_pnerf.data.sequence as sequence_module
+import open3d_pnerf.data.images as sequence_module
 from open3d_pnerf.data import (
     RGBDSequence,
     check_poses,
@@ -327,7 +327,7 @@ def test_override_image_scale(sample):
     assert np.abs(frame.color.mean((0, 1)) - sample[0].color.mean((0, 1))).max() < 1.0
     np.testing.assert_array_equal(seq.gt_poses, sample.gt_poses)
     # rescaled() on the sequence gives the same
-    np.testing.assert_array_equal(sample.rescaled(0.5)[0].depth, frame.depth)
+    np.testing.assert_array_equal(sample.at_scale(0.5)[0].depth, frame.depth)
 
 
 def test_override_intrinsic(sample):
@@ -458,7 +458,7 @@ def test_sequence_is_lazy():
 
     seq = RGBDSequence([reader(k) for k in range(2000)], small_intrinsic())
     assert calls == [] and len(seq) == 2000
-    sub = seq.select(range(0, 2000, 10)).rescaled(0.5)
+    sub = seq.select(range(0, 2000, 10)).at_scale(0.5)
     assert calls == [] and len(sub) == 200
     frame = seq[1234]
     assert calls == [1234] and np.all(frame.depth == 1235.0)
@@ -514,7 +514,7 @@ def test_shared_redwood(shared_data):
 
 
 def test_write_sequence_round_trips_through_load_sequence(tmp_path):
-    from open3d_pnerf.data.loaders import write_sequence
+    from open3d_pnerf.data import write_sequence
     from open3d_pnerf.synthetic import synthetic_sequence
 
     seq = synthetic_sequence(3, 64, 48).sequence
@@ -529,7 +529,7 @@ def test_write_sequence_round_trips_through_load_sequence(tmp_path):
 
 
 def test_write_sequence_refuses_depth_that_overflows_16_bits(tmp_path):
-    from open3d_pnerf.data.loaders import write_sequence
+    from open3d_pnerf.data import write_sequence
     from open3d_pnerf.synthetic import synthetic_sequence
 
     with pytest.raises(InputError, match="overflows 16 bits"):

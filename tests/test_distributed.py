@@ -24,18 +24,20 @@ import torch
 import torch.distributed as dist
 
 from open3d_pnerf import cli
+from open3d_pnerf.batches import RayBatcher
 from open3d_pnerf.config import ReconstructionConfig
 from open3d_pnerf.data import load_sample
 from open3d_pnerf.distributed import ENV_KEYS, DistributedContext, init_distributed, launch_environment
 from open3d_pnerf.errors import ConfigError, DistributedError
 from open3d_pnerf.losses import total_loss
-from open3d_pnerf.reconstruction import build_field, scene_box
+from open3d_pnerf.model import PNeRFModel, build_model
+from open3d_pnerf.pipeline import scene_box
 from open3d_pnerf.rendering import BatchShare, SamplingConfig, render_rays
 from open3d_pnerf.targets import depth_targets
-from open3d_pnerf.training import RayBatcher, Trainer
+from open3d_pnerf.training import Trainer
 
 WORKER = Path(__file__).with_name("distributed_worker.py")
-SMALL = {"rays_per_batch": 64, "calibrate_depth_sigma": False, "export_max_views": 2}
+SMALL = {"optimizer.rays_per_batch": 64, "export.calibrate_depth_sigma": False, "export.max_views": 2}
 
 
 def free_port() -> int:
@@ -116,14 +118,15 @@ def test_device_of_a_rank_is_its_local_gpu():
 @pytest.fixture(scope="module")
 def scene():
     """The sample at half resolution, a test-preset field and 64 rays of the seed-0 batcher."""
-    seq = load_sample().rescaled(0.5)
+    seq = load_sample().at_scale(0.5)
     targets = depth_targets(seq, poses=seq.gt_poses, progress=False)
     aabb = scene_box(targets, seq.gt_poses, seq.K)
     cfg = ReconstructionConfig.preset("test", progress=False)
-    field = build_field(cfg, aabb)
-    batcher = RayBatcher(seq, seq.gt_poses, targets, field.aabb, "cpu", seed=0)
+    model = build_model(cfg, aabb, seq.gt_poses, seq.K, np.zeros((len(seq), 6, 6)))
+    field = model.field
+    batcher = RayBatcher(seq, targets, "cpu", seed=0)
     batch = batcher.sample(64, torch.Generator().manual_seed(0))
-    rays, rgb, mean, sigma = batch.rays, batch.rgb, batch.mean, batch.sigma
+    rays, rgb, mean, sigma = model.rays(batch), batch.rgb, batch.mean, batch.sigma
     assert 0 < torch.isfinite(mean).sum() < 64  # rays with and without depth targets
     return field, rays, rgb, mean, sigma
 
@@ -172,11 +175,11 @@ def test_share_losses_and_gradients_add_up_to_the_whole_batch(scene, kind):
 
 def test_trainer_needs_a_ray_per_rank(scene):
     field, *_ = scene
-    seq = load_sample().rescaled(0.5)
-    batcher = RayBatcher(seq, seq.gt_poses, None, field.aabb, "cpu", seed=0)
-    cfg = ReconstructionConfig.preset("test", rays_per_batch=3, progress=False)
+    seq = load_sample().at_scale(0.5)
+    batcher = RayBatcher(seq, None, "cpu", seed=0)
+    cfg = ReconstructionConfig.preset("test", progress=False, **{"optimizer.rays_per_batch": 3})
     with pytest.raises(ConfigError, match="rays_per_batch=3.*4 ranks"):
-        Trainer(field, batcher, cfg, dist=DistributedContext(0, 4))
+        Trainer(PNeRFModel(field, cfg.sampling), batcher, cfg, dist=DistributedContext(0, 4))
 
 
 # -- joining ------------------------------------------------------------------------------------------
@@ -216,10 +219,10 @@ def test_bad_backends_and_timeouts_are_config_errors(no_launch):
         with pytest.raises(ConfigError, match="timeout"):
             init_distributed(timeout_s=timeout)
     with pytest.raises(ConfigError, match=r"dist_backend="):
-        ReconstructionConfig.preset("test", dist_backend="mpi")
+        ReconstructionConfig.preset("test", **{"runtime.dist_backend": "mpi"})
     for timeout in (0, -1.0, "600"):
         with pytest.raises(ConfigError, match=r"dist_timeout_s="):
-            ReconstructionConfig.preset("test", dist_timeout_s=timeout)
+            ReconstructionConfig.preset("test", **{"runtime.dist_timeout_s": timeout})
     for key, value in {"RANK": "0", "WORLD_SIZE": "2", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": "1"}.items():
         no_launch.setenv(key, value)
     with pytest.raises(ConfigError, match="'nccl' needs a CUDA device"):
@@ -259,7 +262,7 @@ def test_two_ranks_train_the_same_parameters_as_one_process(tmp_path):
     for key in ("steps", "loss", "psnr"):
         assert rank0["stats"][key] == pytest.approx(one["stats"][key], rel=1e-3)
     # training moved the weights much further than the tolerance
-    initial = build_field(ReconstructionConfig.preset("test", **overrides), one["field"]["aabb"].numpy()).state_dict()
+    initial = ReconstructionConfig.preset("test", **overrides).build_field(one["field"]["aabb"].numpy()).state_dict()
     assert max((one["field"][k] - initial[k]).abs().max() for k in initial) > 1e-2
     # only rank 0 exported and checkpointed
     assert rank0["exported"] and not rank1["exported"]
@@ -280,12 +283,12 @@ def test_cli_reconstruct_under_torchrun_matches_one_process(tmp_path, no_launch)
     report = json.loads((tmp_path / "two" / "report.json").read_text())
     assert report["training"]["steps"] == 4
     config = json.loads((tmp_path / "two" / "run_config.json").read_text())["config"]
-    assert config["rays_per_batch"] == 96 and config["dist_timeout_s"] == 600.0
+    assert config["optimizer"]["rays_per_batch"] == 96 and config["runtime"]["dist_timeout_s"] == 600.0
     assert sorted(p.name for p in (tmp_path / "two").iterdir()) == sorted(p.name for p in (tmp_path / "one").iterdir())
 
 
 def test_a_rank_that_dies_makes_the_other_fail_fast_with_a_clear_error(tmp_path):
-    procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "checkpoint_every": 1, "dist_timeout_s": 10})
+    procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "runtime.checkpoint_every": 1, "runtime.dist_timeout_s": 10})
     try:
         wait_for(tmp_path / "checkpoints" / "checkpoint.pt", procs)
         procs[1].kill()
@@ -301,7 +304,7 @@ def test_a_rank_that_dies_makes_the_other_fail_fast_with_a_clear_error(tmp_path)
 
 
 def test_a_hung_rank_makes_the_other_time_out_with_a_clear_error(tmp_path):
-    procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "checkpoint_every": 1, "dist_timeout_s": 3})
+    procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "runtime.checkpoint_every": 1, "runtime.dist_timeout_s": 3})
     try:
         wait_for(tmp_path / "checkpoints" / "checkpoint.pt", procs)
         procs[1].send_signal(signal.SIGSTOP)  # alive, holding its connections, never answering
@@ -316,7 +319,7 @@ def test_a_hung_rank_makes_the_other_time_out_with_a_clear_error(tmp_path):
 
 
 def test_ctrl_c_on_one_rank_stops_every_rank_after_the_same_step(tmp_path):
-    procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "checkpoint_every": 1})
+    procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "runtime.checkpoint_every": 1})
     try:
         wait_for(tmp_path / "checkpoints" / "checkpoint.pt", procs)
         procs[1].send_signal(signal.SIGINT)

@@ -28,7 +28,8 @@ from open3d_pnerf.evaluation import (
     score_renders,
     ssim,
 )
-from open3d_pnerf.reconstruction import Reconstruction, split_frames
+from open3d_pnerf.pipeline import split_frames
+from open3d_pnerf.reconstruction import Reconstruction
 from open3d_pnerf.synthetic import synthetic_sequence
 
 HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
@@ -350,7 +351,7 @@ def comparison(small_room):
     # mesh to score. 9 training views around the room see most surfaces 1-3 times: keep TSDF
     # voxels seen once (weight_threshold=0.5).
     config = ReconstructionConfig.preset("test", holdout_every=4, progress=False, max_steps=60,
-                                         min_opacity=0.5, max_point_std=1.0)
+                                         export={"min_opacity": 0.5, "max_point_std": 1.0})
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = compare_with_tsdf(small_room.sequence, config, poses=small_room.sequence.gt_poses,

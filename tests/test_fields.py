@@ -7,16 +7,21 @@ import math
 import pytest
 import torch
 
+from open3d_pnerf.config import FIELD_CONFIGS
 from open3d_pnerf.fields import (
-    FIELDS,
     DenseGridEncoding,
     FrequencyEncoding,
     GridField,
     HashGridEncoding,
     HashGridField,
     VanillaNeRFField,
-    make_field,
 )
+
+FIELDS = {"grid": GridField, "hashgrid": HashGridField, "vanilla": VanillaNeRFField}
+
+
+def make_field(name: str, aabb, **kwargs):
+    return FIELDS[name](aabb, **kwargs)
 
 AABB = torch.tensor([[-1.0, -0.5, 0.0], [1.0, 0.5, 2.0]])
 SMALL = {
@@ -80,10 +85,14 @@ def test_field_gradients_reach_every_parameter(name):
         assert p.grad.abs().sum() > 0, pname
 
 
-def test_make_field_rejects_unknown_names_and_builds_classes():
-    assert FIELDS == {"grid": GridField, "hashgrid": HashGridField, "vanilla": VanillaNeRFField}
-    with pytest.raises(KeyError):
-        make_field("mlp", AABB)
+def test_each_field_config_builds_its_field_with_its_settings():
+    assert set(FIELD_CONFIGS) == set(FIELDS)
+    for name, cls in FIELD_CONFIGS.items():
+        assert isinstance(cls().build(AABB), FIELDS[name])
+    hashgrid = FIELD_CONFIGS["hashgrid"](levels=3, log2_table_size=10, max_resolution=64).build(AABB)
+    assert len(hashgrid.encoding.resolutions) == 3 and hashgrid.encoding.table_size == 1024
+    vanilla = FIELD_CONFIGS["vanilla"](width=32, depth=6).build(AABB)
+    assert len(vanilla.layers) == 6 and vanilla.layers[0].out_features == 32
 
 
 def test_field_normalize_maps_the_box_to_the_unit_cube():

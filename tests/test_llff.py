@@ -14,12 +14,11 @@ from scipy.spatial.transform import Rotation
 
 import open3d_pnerf as pn
 from open3d_pnerf import cli
-from open3d_pnerf.data import ImageSequence, load_sequence, read_llff, sfm_pose_covariances
+from open3d_pnerf.data import load_sequence, read_llff, sfm_pose_covariances, write_sequence
 from open3d_pnerf.data.colmap import read_cameras_binary, read_images_binary, read_points3d_binary
-from open3d_pnerf.data.loaders import write_sequence
 from open3d_pnerf.errors import DatasetError, InputError
 from open3d_pnerf.evaluation import heldout_scores
-from open3d_pnerf.reconstruction import build_field
+from open3d_pnerf.model import build_model
 
 
 # -- writers of COLMAP's binary format (colmap.github.io/format.html) -------------------------
@@ -163,15 +162,15 @@ def make_llff(root, n_images: int = 3, factor: int = 2, points=None, images_bin=
 def test_llff_reader_converts_poses_intrinsic_and_tracks(tmp_path):
     scene = read_llff(make_llff(tmp_path / "scene"), factor=2, scale=1.0)
     assert len(scene) == 3 and scene.image_size == (6, 8) and scene.name == "scene"
-    np.testing.assert_allclose(scene.poses, opencv_poses(), atol=1e-12)
+    np.testing.assert_allclose(scene.sfm.poses, opencv_poses(), atol=1e-12)
     # focal scaled by 1/2; COLMAP's principal point (8.5, 6.0) in pixels with centres at +0.5
     np.testing.assert_allclose(scene.K, [[10, 0, 8.5 / 2 - 0.5], [0, 10, 6.0 / 2 - 0.5], [0, 0, 1]])
-    np.testing.assert_array_equal(scene.bounds, [[1.0, 9.0]] * 3)
-    np.testing.assert_array_equal(scene.points.xyz, [p[1] for p in POINTS])
-    np.testing.assert_allclose(scene.points.error, [0.375, 0.625, 0.0])  # pixels of the loaded images
+    np.testing.assert_array_equal(scene.sfm.bounds, [[1.0, 9.0]] * 3)
+    np.testing.assert_array_equal(scene.sfm.points.xyz, [p[1] for p in POINTS])
+    np.testing.assert_allclose(scene.sfm.points.error, [0.375, 0.625, 0.0])  # pixels of the loaded images
     # no images.bin: image id k is row k - 1
-    np.testing.assert_array_equal(scene.points.observed, [[1, 1, 0], [1, 1, 1], [0, 0, 0]])
-    np.testing.assert_array_equal(scene.points.track_length, [2, 3, 0])
+    np.testing.assert_array_equal(scene.sfm.points.observed, [[1, 1, 0], [1, 1, 1], [0, 0, 0]])
+    np.testing.assert_array_equal(scene.sfm.points.track_length, [2, 3, 0])
     frame = scene[2]
     assert frame.color.shape == (6, 8, 3) and frame.color.dtype == np.uint8 and (frame.color == 80).all()
     assert frame.depth.shape == (6, 8) and not frame.depth.any() and not scene.has_depth
@@ -181,7 +180,7 @@ def test_llff_reader_maps_image_ids_by_name_when_images_bin_exists(tmp_path):
     # ids in reverse name order: id 1 is image002 (row 2), id 3 is image000 (row 0)
     images = [(k, (1.0, 0, 0, 0), (0.0, 0, 0), 1, f"image{3 - k:03d}.png", []) for k in (1, 2, 3)]
     scene = read_llff(make_llff(tmp_path / "scene", images_bin=images), factor=2, scale=1.0)
-    np.testing.assert_array_equal(scene.points.observed, [[0, 1, 1], [1, 1, 1], [0, 0, 0]])
+    np.testing.assert_array_equal(scene.sfm.points.observed, [[0, 1, 1], [1, 1, 1], [0, 0, 0]])
     # without cameras.bin the principal point is the image centre
     scene = read_llff(make_llff(tmp_path / "centre", cameras=False), factor=2)
     np.testing.assert_allclose(scene.K[:2, 2], [3.5, 2.5])
@@ -228,22 +227,26 @@ def test_llff_bad_inputs_name_the_culprit(tmp_path):
 # -- the shared LLFF fern scene (skipped when ../shared/data is absent) -------------------------
 @pytest.fixture(scope="module")
 def fern(shared_data):
-    return read_llff(shared_data / "llff_fern" / "nerf_llff_data" / "fern", factor=8, scale=1.0)
+    return read_llff(fern_folder(shared_data), factor=8, scale=1.0)
+
+
+def fern_folder(shared_data):  # noqa: N802
+    return shared_data / "llff_fern" / "nerf_llff_data" / "fern"
 
 
 @pytest.mark.data
-def test_fern_scene(fern):
-    rows = np.load(fern.image_paths[0].parents[1] / "poses_bounds.npy")
+def test_fern_scene(fern, shared_data):
+    rows = np.load(fern_folder(shared_data) / "poses_bounds.npy")
     assert len(fern) == 20 and fern.image_size == (378, 504)
     assert fern[0].color.shape == (378, 504, 3)
     np.testing.assert_allclose(fern.K[0, 0], rows[0, 14] / 8)
     assert fern.K[0, 0] == pytest.approx(3260.53 / 8, abs=0.01)
     np.testing.assert_allclose(fern.K[:2, 2], [251.5, 188.5])  # COLMAP's (2016, 1512) at 1/8
-    rot = fern.poses[:, :3, :3]
+    rot = fern.sfm.poses[:, :3, :3]
     np.testing.assert_allclose(rot @ rot.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rot.shape), atol=1e-6)
     np.testing.assert_allclose(np.linalg.det(rot), 1.0, atol=1e-6)
-    assert len(fern.points) == 10091 and fern.points.observed.any(1).all()
-    assert np.median(fern.points.error) < 1.0  # pixels at 1/8
+    assert len(fern.sfm.points) == 10091 and fern.sfm.points.observed.any(1).all()
+    assert np.median(fern.sfm.points.error) < 1.0  # pixels at 1/8
 
 
 @pytest.mark.data
@@ -251,19 +254,19 @@ def test_fern_points_project_into_their_images_and_reproduce_the_llff_bounds(fer
     """Checks the id -> row assumption (no images.bin in fern): LLFF computed each row's near/far
     bounds as the 0.1 / 99.9 percentiles of the depths of the points whose tracks include that
     image, so the right mapping reproduces them; a shifted mapping does not."""
-    forward, centres = fern.poses[:, :3, 2], fern.poses[:, :3, 3]
-    depth = np.einsum("mnk,nk->mn", fern.points.xyz[:, None] - centres[None], forward)  # (M, N) z-depths
+    forward, centres = fern.sfm.poses[:, :3, 2], fern.sfm.poses[:, :3, 3]
+    depth = np.einsum("mnk,nk->mn", fern.sfm.points.xyz[:, None] - centres[None], forward)  # (M, N) z-depths
     h, w = fern.image_size
 
     def bounds(observed):
         return np.array([np.percentile(depth[observed[:, i], i], [0.1, 99.9]) for i in range(len(fern))])
 
-    np.testing.assert_allclose(bounds(fern.points.observed), fern.bounds, rtol=1e-9)  # exactly, in fact
-    shifted = np.roll(fern.points.observed, 1, axis=1)
-    assert np.abs(bounds(shifted) / fern.bounds - 1).max() > 0.03  # 7-8 % off
+    np.testing.assert_allclose(bounds(fern.sfm.points.observed), fern.sfm.bounds, rtol=1e-9)  # exactly, in fact
+    shifted = np.roll(fern.sfm.points.observed, 1, axis=1)
+    assert np.abs(bounds(shifted) / fern.sfm.bounds - 1).max() > 0.03  # 7-8 % off
     # every observation lies in front of its camera and inside its image
-    pts, cams = np.nonzero(fern.points.observed)
-    q = np.einsum("mk,mkj->mj", fern.points.xyz[pts] - centres[cams], fern.poses[cams, :3, :3])
+    pts, cams = np.nonzero(fern.sfm.points.observed)
+    q = np.einsum("mk,mkj->mj", fern.sfm.points.xyz[pts] - centres[cams], fern.sfm.poses[cams, :3, :3])
     assert (q[:, 2] > 0).all()
     u = q[:, 0] / q[:, 2] * fern.K[0, 0] + fern.K[0, 2]
     v = q[:, 1] / q[:, 2] * fern.K[1, 1] + fern.K[1, 2]
@@ -281,19 +284,19 @@ VISIBLE = [(k + 1, (x, y, 3.0), (200, 100, 50), 0.5, [(1, 0), (2, 0), (3, 0)])
 def test_load_sequence_reads_an_llff_folder_as_an_image_sequence(tmp_path):
     root = make_llff(tmp_path / "scene")
     seq = load_sequence(root)
-    assert isinstance(seq, ImageSequence) and not seq.has_depth and len(seq) == 3
-    assert seq.scale == pytest.approx(1 / 0.75)  # nearest bound (1.0) at 1 / 0.75 units, as NeRF
-    np.testing.assert_allclose(seq.poses[:, :3, 3], opencv_poses()[:, :3, 3] / 0.75, atol=1e-12)
-    np.testing.assert_allclose(seq.bounds, [[1 / 0.75, 9 / 0.75]] * 3)
-    np.testing.assert_allclose(seq.points.xyz, np.array([p[1] for p in POINTS]) / 0.75)
+    assert seq.sfm is not None and not seq.has_depth and len(seq) == 3
+    assert seq.sfm.scale == pytest.approx(1 / 0.75)  # nearest bound (1.0) at 1 / 0.75 units, as NeRF
+    np.testing.assert_allclose(seq.sfm.poses[:, :3, 3], opencv_poses()[:, :3, 3] / 0.75, atol=1e-12)
+    np.testing.assert_allclose(seq.sfm.bounds, [[1 / 0.75, 9 / 0.75]] * 3)
+    np.testing.assert_allclose(seq.sfm.points.xyz, np.array([p[1] for p in POINTS]) / 0.75)
     assert "3 images" in repr(seq) and "3 SfM points" in repr(seq)
     # select and rescale keep poses, covariances and the points' observations of the chosen frames
     sub = load_sequence(root, stride=2, image_scale=0.5)
-    assert isinstance(sub, ImageSequence) and len(sub) == 2 and sub.image_size == (3, 4)
-    np.testing.assert_array_equal(sub.points.observed, seq.points.observed[:, [0, 2]])
-    np.testing.assert_allclose(sub.points.error, seq.points.error / 2)  # pixels of the smaller images
-    np.testing.assert_array_equal(sub.poses, seq.poses[[0, 2]])
-    np.testing.assert_array_equal(sub.covariances, seq.covariances[[0, 2]])
+    assert sub.sfm is not None and len(sub) == 2 and sub.image_size == (3, 4)
+    np.testing.assert_array_equal(sub.sfm.points.observed, seq.sfm.points.observed[:, [0, 2]])
+    np.testing.assert_allclose(sub.sfm.points.error, seq.sfm.points.error / 2)  # pixels of the smaller images
+    np.testing.assert_array_equal(sub.sfm.poses, seq.sfm.poses[[0, 2]])
+    np.testing.assert_array_equal(sub.sfm.covariances, seq.sfm.covariances[[0, 2]])
     assert sub[1].color.shape == (3, 4, 3)
     np.testing.assert_array_equal(sub.timestamps, [0, 2])  # frame numbers of the folder, as for RGB-D
     with pytest.raises(InputError, match=r"LLFF image folder .*depth_scale, depth_trunc do not apply"):
@@ -302,14 +305,14 @@ def test_load_sequence_reads_an_llff_folder_as_an_image_sequence(tmp_path):
 
 def test_image_sequences_are_refused_where_depth_is_needed_and_give_sparse_targets(tmp_path):
     seq = load_sequence(make_llff(tmp_path / "scene", points=VISIBLE))
-    for call in (lambda: pn.track(seq), lambda: pn.tsdf_fusion(seq, seq.poses),
+    for call in (lambda: pn.track(seq), lambda: pn.tsdf_fusion(seq, seq.sfm.poses),
                  lambda: write_sequence(seq, tmp_path / "copy")):
-        with pytest.raises(InputError, match="scene has no depth images .* sequence.poses"):
+        with pytest.raises(InputError, match="scene has no depth images .* sequence.sfm.poses"):
             call()
     targets = pn.depth_targets(seq, progress=False)  # the SfM poses and points
-    pts = seq.points
-    expected = pn.sparse_depth_targets(seq.poses, seq.K, seq.image_size, pts.xyz, pts.error, pts.observed,
-                                       covariances=seq.covariances)
+    pts = seq.sfm.points
+    expected = pn.sparse_depth_targets(seq.sfm.poses, seq.K, seq.image_size, pts.xyz, pts.error, pts.observed,
+                                       covariances=seq.sfm.covariances)
     for name in ("mean", "sigma", "valid", "support"):
         np.testing.assert_array_equal(getattr(targets, name), getattr(expected, name))
     assert targets.valid.any()
@@ -353,8 +356,8 @@ def test_reconstruct_trains_on_an_image_sequence_with_its_sfm_poses(tmp_path):
     seq = load_sequence(make_llff(tmp_path / "scene", points=VISIBLE))
     cfg = pn.ReconstructionConfig.preset("test", max_steps=4, image_scale=1.0, progress=False)
     recon = pn.reconstruct(seq, cfg)
-    np.testing.assert_array_equal(recon.poses, seq.poses)
-    np.testing.assert_array_equal(recon.covariances, seq.covariances)
+    np.testing.assert_array_equal(recon.poses, seq.sfm.poses)
+    np.testing.assert_array_equal(recon.covariances, seq.sfm.covariances)
     assert recon.stats["timings"]["tracking_s"] < 0.1 and recon.stats["targets"]["valid_fraction"] > 0
     assert recon.depth_sigma_scale == 1.0  # no sensor depth to calibrate against
     with pytest.raises(InputError, match="calibrate_depth_sigma\\(\\): sequence: scene has no depth images"):
@@ -369,7 +372,7 @@ def test_cli_reconstructs_and_evaluates_an_llff_folder(tmp_path, capsys):
     report = json.loads((out / "report.json").read_text())
     assert set(report["scores"]) == {"model"} and "depth_l1" not in report["scores"]["model"]
     assert "No depth images" in (out / "report.md").read_text() and (out / "compare_frame_0000.png").is_file()
-    np.testing.assert_allclose(np.load(out / "poses.npy"), load_sequence(root).poses)
+    np.testing.assert_allclose(np.load(out / "poses.npy"), load_sequence(root).sfm.poses)
     assert cli.main(["--quiet", "evaluate", str(out)]) == cli.EXIT_OK
     assert "No depth images" in capsys.readouterr().out
 
@@ -377,15 +380,15 @@ def test_cli_reconstructs_and_evaluates_an_llff_folder(tmp_path, capsys):
 @pytest.mark.data
 def test_reconstruct_learns_the_held_out_fern_views_from_ten_images(shared_data):
     """The paper's protocol at a smoke-test size: every 8th image held out, 10 training views."""
-    seq = load_sequence(shared_data / "llff_fern" / "nerf_llff_data" / "fern", image_scale=0.25)
-    covs = seq.covariances
+    seq = load_sequence(fern_folder(shared_data), image_scale=0.25)
+    covs = seq.sfm.covariances
     assert (np.linalg.eigvalsh(covs) > 0).all() and np.sqrt(covs[:, [0, 1, 2], [0, 1, 2]]).max() < 1e-3  # rad
     cfg = pn.ReconstructionConfig.preset("test", holdout_every=8, train_views=10, max_steps=150, image_scale=1.0,
                                          progress=False)
     recon = pn.reconstruct(seq, cfg)
     assert recon.holdout_indices.tolist() == [0, 8, 16] and len(recon.train_indices) == 10
     trained = heldout_scores(recon, seq)["model"]
-    recon.field = build_field(cfg, recon.aabb)
+    recon.model = build_model(cfg, recon.aabb)
     untrained = heldout_scores(recon, seq)["model"]
     print(f"fern held-out PSNR {trained['psnr']:.2f} dB (untrained {untrained['psnr']:.2f})")
     assert trained["psnr"] > untrained["psnr"] + 4 and trained["ssim"] > untrained["ssim"] + 0.2
@@ -406,5 +409,5 @@ def test_reconstruct_without_sfm_points_boxes_the_camera_frusta(tmp_path):
     cfg = pn.ReconstructionConfig.preset("test", max_steps=2, image_scale=1.0, progress=False)
     with pytest.warns(UserWarning, match="no SfM point gives a depth target"):
         recon = pn.reconstruct(seq, cfg)
-    far = seq.poses[:, :3, 3] + seq.poses[:, :3, 2] * seq.bounds[:, 1:]  # optical axis at the far bound
+    far = seq.sfm.poses[:, :3, 3] + seq.sfm.poses[:, :3, 2] * seq.sfm.bounds[:, 1:]  # optical axis at the far bound
     assert ((far >= recon.aabb[0] - 1e-5) & (far <= recon.aabb[1] + 1e-5)).all()

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from open3d_pnerf.losses import (
-    LossGains,
+    LossWeights,
     color_l1,
     density_l1,
     depth_l1,
@@ -241,7 +241,7 @@ def test_total_loss_combines_terms_with_the_gains(two_ray_batch):
     edges, t, w, color, target = two_ray_batch
     render = make_render(w, edges, color)
     mu, sigma = torch.tensor([1.5, 2.0, 2.5]), torch.tensor([0.1, 0.2, 0.05])
-    gains = LossGains(color=2.0, density=0.5, depth=3.0)
+    gains = LossWeights(color=2.0, density=0.5, depth=3.0)
     out = total_loss("pnerf", [render], target, mu, sigma, gains)
     c = color_l1(color, target)
     d = density_l1(w, edges, mu, sigma).mean()

@@ -61,7 +61,7 @@ def test_prior_is_half_the_mahalanobis_energy_and_fixed_frames_stay():
 
 
 def test_bad_pose_refinement_settings_raise_config_error():
-    for field, value in (("refine_poses", 1), ("pose_lr", 0.0), ("pose_prior_weight", -1.0)):
+    for field, value in (("refine_poses", 1), ("optimizer.pose_lr", 0.0), ("objective.pose_prior_weight", -1.0)):
         with pytest.raises(ConfigError, match=field):
             ReconstructionConfig.preset("test", **{field: value})
 
@@ -71,7 +71,7 @@ def test_refinement_moves_noisy_poses_toward_the_truth():
     (after the rigid alignment that removes the gauge freedom shared by field and poses)."""
     data = synthetic_sequence(12, 160, 120, seed=0, pose_noise=(0.01, 0.02))
     cfg = ReconstructionConfig.preset("test", field="grid", max_steps=300, holdout_every=0, progress=False,
-                                      refine_poses=True, calibrate_depth_sigma=False)
+                                      refine_poses=True, **{"export.calibrate_depth_sigma": False})
     recon = pn.reconstruct(data.sequence, cfg, poses=data.poses, covariances=data.covariances)
     gt = data.sequence.gt_poses
     before = pn.absolute_trajectory_error(data.poses, gt)["rmse"]
@@ -95,12 +95,14 @@ def test_unrefined_frames_follow_a_rigid_shift_of_the_refined_ones():
 
 def test_pose_corrections_resume_from_a_checkpoint_like_a_straight_run(tmp_path):
     """The twists and their Adam state are in the checkpoint: 4 + 4 steps equal 8 steps."""
+    from open3d_pnerf.batches import RayBatcher
     from open3d_pnerf.data import load_sample
-    from open3d_pnerf.reconstruction import build_field, scene_box
+    from open3d_pnerf.model import build_model
+    from open3d_pnerf.pipeline import scene_box
     from open3d_pnerf.targets import depth_targets
-    from open3d_pnerf.training import RayBatcher, Trainer
+    from open3d_pnerf.training import Trainer
 
-    seq = load_sample().rescaled(0.5)
+    seq = load_sample().at_scale(0.5)
     targets = depth_targets(seq, poses=seq.gt_poses, progress=False)
     aabb = scene_box(targets, seq.gt_poses, seq.K)
     cfg = ReconstructionConfig.preset("test", max_steps=8, progress=False, refine_poses=True)
@@ -108,10 +110,8 @@ def test_pose_corrections_resume_from_a_checkpoint_like_a_straight_run(tmp_path)
 
     def trainer(checkpoint_dir=None):
         torch.manual_seed(0)
-        field = build_field(cfg, aabb)
-        batcher = RayBatcher(seq, seq.gt_poses, targets, field.aabb, "cpu", cfg.seed,
-                             pose_corrections=PoseCorrections(noise))
-        return Trainer(field, batcher, cfg, None, checkpoint_dir)
+        model = build_model(cfg, aabb, seq.gt_poses, seq.K, noise)
+        return Trainer(model, RayBatcher(seq, targets, "cpu", cfg.seed), cfg, None, checkpoint_dir)
 
     straight = trainer()
     straight.train()
@@ -127,6 +127,6 @@ def test_pose_corrections_resume_from_a_checkpoint_like_a_straight_run(tmp_path)
     assert first.train()["interrupted"]
     second = trainer(tmp_path)
     second.load_checkpoint(tmp_path / "checkpoint.pt")
-    assert second.step == 4 and second.pose_corrections.twists.abs().sum() > 0
+    assert second.step == 4 and second.model.pose_corrections.twists.abs().sum() > 0
     second.train()
-    torch.testing.assert_close(second.pose_corrections.twists, straight.pose_corrections.twists, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(second.model.pose_corrections.twists, straight.model.pose_corrections.twists, rtol=1e-5, atol=1e-7)

@@ -10,6 +10,7 @@ import json
 import os
 import shlex
 import shutil
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -17,11 +18,10 @@ import pytest
 import torch
 
 from open3d_pnerf import Reconstruction, ReconstructionConfig, reconstruct
+from open3d_pnerf.camera import backproject, scale_intrinsic
 from open3d_pnerf.data import load_sample
-from open3d_pnerf.data.sequence import scale_intrinsic
 from open3d_pnerf.errors import CheckpointError, InputError
 from open3d_pnerf.export import (
-    backproject,
     mesh_from_renders,
     point_cloud_from_renders,
     read_point_cloud_ply,
@@ -29,7 +29,8 @@ from open3d_pnerf.export import (
     write_mesh_ply,
     write_point_cloud_ply,
 )
-from open3d_pnerf.reconstruction import FORMAT_VERSION, build_field, scene_box, split_frames
+from open3d_pnerf.pipeline import scene_box, split_frames
+from open3d_pnerf.reconstruction import FORMAT_VERSION
 from open3d_pnerf.targets import DepthTargets, depth_targets
 
 TRAIN_STEPS = 150  # enough for a confident surface to export (opacity >= 0.9, std <= 5 cm)
@@ -80,7 +81,7 @@ def test_scene_box_holds_camera_centres_and_surface_points():
 
 
 def test_scene_box_on_the_sample_contains_all_camera_centres():
-    seq = load_sample().rescaled(0.25)
+    seq = load_sample().at_scale(0.25)
     targets = depth_targets(seq, poses=seq.gt_poses, progress=False)
     box = scene_box(targets, seq.gt_poses, seq.K)
     centres = seq.gt_poses[:, :3, 3]
@@ -105,7 +106,7 @@ def test_backproject_pinhole_geometry():
     depth = np.zeros((21, 41), np.float32)
     depth[10, 20] = 2.0  # principal point
     depth[10, 40] = 4.0  # 20 px right: x = 20 / 100 * 4
-    pts = backproject(depth, K, pose, depth > 0)
+    pts, _ = backproject(depth, K, pose)
     np.testing.assert_allclose(pts, [[1, 2, 5.0], [1.8, 2, 7.0]], atol=1e-6)
 
 
@@ -202,7 +203,7 @@ class WallField(torch.nn.Module):
 def wall_reconstruction(z0=1.2):
     aabb = np.array([[-2, -2, 0.8], [2, 2, 1.8]], np.float32)
     # 128 coarse samples over ~1 m: a step in density is located to within half a bin (4 mm)
-    cfg = ReconstructionConfig.preset("test", n_coarse=128, progress=False)
+    cfg = ReconstructionConfig.preset("test", progress=False, **{"sampling.n_coarse": 128})
     return Reconstruction(WallField(aabb, z0), cfg, np.eye(4)[None], np.zeros((1, 6, 6)), intrinsic(),
                           aabb, [0], [])
 
@@ -245,7 +246,8 @@ def test_depth_pdf_of_an_analytic_wall_peaks_at_its_z_depth():
     recon = wall_reconstruction(1.2)
     pixels = np.array([[19.5, 14.5], [0, 0], [39, 29], [5, 20]])  # centre and corners: ||K^-1 [u, v, 1]|| up to 1.3
     pdf = recon.depth_pdf(np.eye(4), pixels)
-    s = recon.config.n_coarse + recon.config.n_fine + recon.config.n_guided
+    sampling = recon.config.sampling
+    s = sampling.n_coarse + sampling.n_fine + sampling.n_guided
     assert pdf["z"].shape == pdf["mass"].shape == pdf["pdf"].shape == (4, s) and pdf["edges"].shape == (4, s + 1)
     assert (np.diff(pdf["edges"], axis=1) >= 0).all() and (pdf["z"] >= pdf["edges"][:, :-1] - 1e-6).all()
     np.testing.assert_allclose(pdf["mass"].sum(1), 1.0, atol=1e-4)
@@ -290,7 +292,7 @@ def test_reconstruct_returns_a_complete_reconstruction(recon, sample):
     n = len(recon.point_cloud.points)
     assert n > 100 and recon.point_sigma.shape == (n,)
     assert np.isfinite(recon.point_sigma).all() and (recon.point_sigma >= 0).all()
-    assert recon.point_sigma.max() <= recon.config.max_point_std + 1e-6
+    assert recon.point_sigma.max() <= recon.config.export.max_point_std + 1e-6
     pts = np.asarray(recon.point_cloud.points)
     assert ((pts >= recon.aabb[0] - 1e-3) & (pts <= recon.aabb[1] + 1e-3)).all()
     stats = recon.stats
@@ -343,10 +345,10 @@ def test_exposure_gains_follow_the_cameras_auto_exposure(recon):
 
 @pytest.mark.slow
 def test_training_beats_an_untrained_model_on_held_out_frames(recon, sample):
-    untrained = Reconstruction(build_field(recon.config, recon.aabb), recon.config, recon.poses,
+    untrained = Reconstruction(recon.config.build_field(recon.aabb), recon.config, recon.poses,
                                recon.covariances, recon.intrinsic, recon.aabb, recon.train_indices,
                                recon.holdout_indices)
-    small = sample.rescaled(0.5)
+    small = sample.at_scale(0.5)
     gains = []
     for i in (4, 8):  # held-out frames inside the trajectory (0 is its end)
         assert i in recon.holdout_indices
@@ -426,7 +428,7 @@ def test_load_rejects_broken_folders(saved, tmp_path):
         Reconstruction.load(d)
     shutil.copy(saved / "reconstruction.json", d / "reconstruction.json")
     meta = json.loads((d / "reconstruction.json").read_text())
-    meta["config"]["hash_levels"] = 4  # weights no longer match the config
+    meta["config"]["hashgrid"]["levels"] = 4  # weights no longer match the config
     (d / "reconstruction.json").write_text(json.dumps(meta))
     with pytest.raises(CheckpointError, match="do not match"):
         Reconstruction.load(d)
@@ -476,7 +478,7 @@ def test_calibration_puts_68_percent_of_training_depth_errors_within_one_sigma(r
     try:
         fitted = recon.calibrate_depth_sigma(sample)
         assert fitted == recon.depth_sigma_scale and 0 < fitted < 10
-        train = sample.select(recon.train_indices).rescaled(recon.config.image_scale)
+        train = sample.select(recon.train_indices).at_scale(recon.config.image_scale)
         inside = []
         for k, i in enumerate(recon.train_indices):  # every pixel, not only the fitted subset
             out, depth = recon.render(recon.poses[i]), train[k].depth
@@ -496,7 +498,7 @@ def test_saved_reconstruction_keeps_its_calibration(recon, saved):
 # -- long sequences: memory-mapped targets, bounded export ---------------------------------------
 @pytest.mark.slow
 def test_large_targets_go_to_memory_mapped_files_that_are_removed_after_training(sample, tmp_path, monkeypatch):
-    import open3d_pnerf.reconstruction as rec
+    import open3d_pnerf.pipeline as rec
 
     used = []
     real = rec.depth_targets
@@ -509,7 +511,7 @@ def test_large_targets_go_to_memory_mapped_files_that_are_removed_after_training
 
     monkeypatch.setattr(rec, "TARGETS_IN_RAM_MAX_BYTES", 0)
     monkeypatch.setattr(rec, "depth_targets", spy)
-    cfg = ReconstructionConfig.preset("test", max_steps=5, progress=False, calibrate_depth_sigma=False)
+    cfg = ReconstructionConfig.preset("test", max_steps=5, progress=False, **{"export.calibrate_depth_sigma": False})
     result = reconstruct(sample.select(range(4)), cfg, poses=sample.gt_poses[:4], checkpoint_dir=tmp_path / "ckpt")
     assert used == [tmp_path / "ckpt" / "targets"]
     assert not used[0].exists()
@@ -523,7 +525,7 @@ def test_export_renders_at_most_export_max_views(recon, monkeypatch):
     monkeypatch.setattr(Reconstruction, "render", lambda self, pose, *a, **k: calls.append(pose) or real(self, pose, *a, **k))
     config = recon.config
     try:
-        recon.config = config.replace(export_max_views=3)
+        recon.config = config.replace(**{"export.max_views": 3})
         recon.export_geometry(progress=False)
     finally:
         recon.config = config
@@ -531,3 +533,18 @@ def test_export_renders_at_most_export_max_views(recon, monkeypatch):
     assert len(calls) == 3 + len(recon.train_indices)
     train = recon.train_indices
     np.testing.assert_allclose(np.stack(calls[:3]), recon.poses[train[[0, len(train) // 2, -1]]])
+
+
+def test_a_folder_saved_before_the_sub_configs_loads_and_renders_as_it_did():
+    """tests/data/saved_format1 was written by the library before its config had sub-configs
+    (a flat config in reconstruction.json), with a render of frame 1 made by that version."""
+    folder = Path(__file__).parent / "data" / "saved_format1"
+    with pytest.warns(DeprecationWarning, match="grid_resolutions"):
+        recon = Reconstruction.load(folder)
+    assert recon.config.field == "grid" and recon.config.grid.resolutions == (8, 16)
+    assert recon.config.sampling.n_fine == 16 and recon.config.max_steps == 60  # the old "test" preset
+    expected = np.load(folder / "expected_render_frame1.npz")
+    out = recon.render(recon.poses[1], frame=1)
+    assert set(out) == set(expected.files)
+    for key in expected.files:
+        np.testing.assert_allclose(out[key], expected[key], rtol=1e-6, atol=1e-6)

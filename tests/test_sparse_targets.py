@@ -144,14 +144,14 @@ def test_sparse_targets_min_angle_and_bad_input():
 @pytest.mark.data
 def test_fern_sparse_targets(shared_data):
     fern = read_llff(shared_data / "llff_fern" / "nerf_llff_data" / "fern", factor=8, scale=1.0)
-    pts = fern.points
-    t = sparse_depth_targets(fern.poses, fern.K, fern.image_size, pts.xyz, pts.error, pts.observed)
+    pts = fern.sfm.points
+    t = sparse_depth_targets(fern.sfm.poses, fern.K, fern.image_size, pts.xyz, pts.error, pts.observed)
     assert t.image_size == (378, 504) and len(t) == 20
     per_image = t.valid.sum((1, 2))
     assert (per_image > 0.5 * pts.observed.sum(0)).all()  # most points get their own pixel
     for i in range(len(t)):
         z = t.mean[i][t.valid[i]]
-        near, far = fern.bounds[i]
+        near, far = fern.sfm.bounds[i]
         assert np.mean((z > 0.9 * near) & (z < 1.1 * far)) > 0.99
     relative = t.sigma[t.valid] / t.mean[t.valid]
     assert np.isfinite(relative).all() and (relative > 0).all()

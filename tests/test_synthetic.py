@@ -14,10 +14,11 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-from open3d_pnerf.baselines import TSDFVolume
-from open3d_pnerf.data.sequence import check_poses
+from open3d_pnerf.camera import check_poses
 from open3d_pnerf.errors import InputError
 from open3d_pnerf.synthetic import DepthNoise, look_at, room_scene, synthetic_sequence
+from open3d_pnerf.targets import SensorNoise
+from open3d_pnerf.tsdf import TSDFVolume
 
 W, H = 320, 240
 FREE_FLOOR = ((-1.9, -0.6), (-1.0, 1.2))  # (x range, y range) of floor free of furniture
@@ -154,7 +155,7 @@ def test_grazing_and_out_of_range_pixels_are_missing():
 
 
 def test_pixels_next_to_a_depth_jump_drop_out_with_edge_dropout():
-    noise = DepthNoise(axial=(0.0, 0.0), disparity_step=0.0, grazing_cos=0.0, dropout=0.0, edge_dropout=0.5)
+    noise = DepthNoise(sensor=SensorNoise(a=0.0, b=0.0), disparity_step=0.0, grazing_cos=0.0, dropout=0.0, edge_dropout=0.5)
     depth = np.full((400, 40), 2.0, np.float32)
     depth[:, :20] = 1.0  # a 1 m jump between columns 19 and 20
     out = noise.apply(depth, np.ones_like(depth), np.random.default_rng(4))

@@ -13,8 +13,9 @@ import types
 import numpy as np
 import pytest
 
+from open3d_pnerf.camera import ray_norms
 from open3d_pnerf.errors import InputError, PoseError
-from open3d_pnerf.targets import DepthTargets, SensorNoise, depth_targets, ray_norms
+from open3d_pnerf.targets import DepthTargets, SensorNoise, depth_targets
 
 Z0 = 2.0
 CENTRE = (24, 32)  # (row, col) of the principal point

@@ -15,22 +15,17 @@ import numpy as np
 import pytest
 import torch
 
-import open3d_pnerf.training as training_module
+import open3d_pnerf.model as model_module
+from open3d_pnerf.batches import RayBatcher
 from open3d_pnerf.config import ReconstructionConfig
 from open3d_pnerf.data import load_sample
 from open3d_pnerf.errors import CheckpointError, ConfigError, TrainingError
-from open3d_pnerf.losses import LossGains
-from open3d_pnerf.reconstruction import build_field, scene_box
+from open3d_pnerf.losses import LossWeights
+from open3d_pnerf.model import build_model
+from open3d_pnerf.pipeline import scene_box
 from open3d_pnerf.rendering import Rays, make_rays
 from open3d_pnerf.targets import depth_targets
-from open3d_pnerf.training import (
-    CHECKPOINT_VERSION,
-    RayBatcher,
-    Trainer,
-    render_field,
-    safe_torch_load,
-    sampling_of,
-)
+from open3d_pnerf.training import CHECKPOINT_VERSION, Trainer, safe_torch_load
 
 
 # -- config ------------------------------------------------------------------------------------
@@ -39,7 +34,7 @@ def test_presets_exist_and_apply_their_values(name):
     cfg = ReconstructionConfig.preset(name)
     assert isinstance(cfg, ReconstructionConfig)
     for key, value in ReconstructionConfig.PRESETS[name].items():
-        assert getattr(cfg, key) == value
+        assert dotted(cfg, key) == value
     cfg.validate()
     over = ReconstructionConfig.preset(name, max_steps=7, loss="dsnerf")
     assert over.max_steps == 7 and over.loss == "dsnerf"
@@ -47,8 +42,8 @@ def test_presets_exist_and_apply_their_values(name):
 
 def test_test_preset_is_small():
     cfg = ReconstructionConfig.preset("test")
-    assert cfg.max_steps <= 100 and cfg.rays_per_batch <= 256
-    assert cfg.grid_resolutions == (16, 32, 64, 128)
+    assert cfg.max_steps <= 100 and cfg.optimizer.rays_per_batch <= 256
+    assert cfg.grid.resolutions == (16, 32, 64, 128)
 
 
 def test_unknown_preset_raises_config_error_naming_it():
@@ -62,17 +57,22 @@ def test_unknown_field_raises_config_error_naming_it():
     with pytest.raises(ConfigError, match="learning_rate"):
         ReconstructionConfig.preset("test", learning_rate=1.0)
     with pytest.raises(ConfigError, match="colour"):
-        ReconstructionConfig.from_dict({"gains": {"colour": 1.0}})
+        ReconstructionConfig.from_dict({"objective": {"weights": {"colour": 1.0}}})
+    with pytest.raises(ConfigError, match="n_corse"):
+        ReconstructionConfig.preset("test", **{"sampling.n_corse": 8})
+    with pytest.raises(ConfigError, match="sampling=3"):
+        ReconstructionConfig.from_dict({"sampling": 3})
 
 
 @pytest.mark.parametrize(
     "field, value",
     [
         ("loss", "l2"), ("field", "mlp"), ("max_steps", 0), ("max_steps", 2.5), ("time_budget_s", -1.0),
-        ("image_scale", 1.5), ("image_scale", 0.0), ("holdout_every", -1), ("rays_per_batch", 0),
-        ("n_coarse", 1), ("n_fine", -1), ("n_guided", -2), ("lr", 0.0), ("lr_final_factor", 2.0), ("adam_beta2", 1.0),
-        ("grid_resolutions", ()), ("grid_resolutions", (16, 1)), ("cache_frames", 0),
-        ("export_scale", 0.0), ("mesh_voxel_size", 0.0), ("device", "tpu"),
+        ("image_scale", 1.5), ("image_scale", 0.0), ("holdout_every", -1), ("optimizer.rays_per_batch", 0),
+        ("sampling.n_coarse", 1), ("sampling.n_fine", -1), ("sampling.n_guided", -2), ("optimizer.lr", 0.0),
+        ("optimizer.lr_final_factor", 2.0), ("optimizer.adam_beta2", 1.0),
+        ("grid.resolutions", ()), ("grid.resolutions", (16, 1)), ("runtime.cache_frames", 0),
+        ("export.scale", 0.0), ("export.mesh_voxel_size", 0.0), ("device", "tpu"),
     ],
 )
 def test_bad_values_raise_config_error_naming_the_field(field, value):
@@ -82,13 +82,15 @@ def test_bad_values_raise_config_error_naming_the_field(field, value):
         ReconstructionConfig().replace(**{field: value})
 
 
-@pytest.mark.parametrize("field, value", [("lr", "fast"), ("image_scale", None), ("rays_per_batch", "512")])
+@pytest.mark.parametrize("field, value", [("optimizer.lr", "fast"), ("image_scale", None),
+                                          ("optimizer.rays_per_batch", "512")])
 def test_values_of_the_wrong_type_raise_config_error(field, value):
     with pytest.raises(ConfigError, match=rf"\b{field}="):
         ReconstructionConfig.preset("test", **{field: value})
 
 
-@pytest.mark.parametrize("field", ["eval_every", "checkpoint_every", "grid_features", "hash_levels"])
+@pytest.mark.parametrize("field", ["runtime.eval_every", "runtime.checkpoint_every", "grid.features",
+                                   "hashgrid.levels"])
 def test_zero_counts_are_rejected(field):
     with pytest.raises(ConfigError, match=rf"\b{field}="):
         ReconstructionConfig.preset("test", **{field: 0})
@@ -96,16 +98,16 @@ def test_zero_counts_are_rejected(field):
 
 def test_config_dict_json_round_trip():
     cfg = ReconstructionConfig.preset(
-        "quality", gains=LossGains(color=2.0, density=0.3, depth=0.7, dsnerf=0.01), holdout_every=3,
-        time_budget_s=12.5, loss="dsnerf",
+        "quality", holdout_every=3, time_budget_s=12.5, loss="dsnerf",
+        **{"objective.weights": LossWeights(color=2.0, density=0.3, depth=0.7, dsnerf=0.01)},
     )
-    data = json.loads(json.dumps(cfg.to_dict()))  # JSON: tuples become lists, gains a dict
-    assert isinstance(data["grid_resolutions"], list) and isinstance(data["gains"], dict)
+    data = json.loads(json.dumps(cfg.to_dict()))  # JSON: tuples become lists, weights a dict
+    assert isinstance(data["grid"]["resolutions"], list) and isinstance(data["objective"]["weights"], dict)
     back = ReconstructionConfig.from_dict(data)
     assert back == cfg
-    assert isinstance(back.gains, LossGains) and back.gains.density == 0.3
-    assert back.grid_resolutions == (16, 32, 64, 128, 256, 384)
-    assert isinstance(back.grid_resolutions, tuple)
+    assert isinstance(back.objective.weights, LossWeights) and back.objective.weights.density == 0.3
+    assert back.grid.resolutions == (16, 32, 64, 128, 256, 384)
+    assert isinstance(back.grid.resolutions, tuple)
     assert back.replace(seed=3).seed == 3 and back.seed == cfg.seed
     assert dataclasses.asdict(back) == cfg.to_dict()
 
@@ -114,14 +116,47 @@ def test_defaults_are_valid_and_presets_are_independent():
     # every field at its default is valid, and presets do not share mutable state
     ReconstructionConfig().validate()
     a, b = ReconstructionConfig.preset("test"), ReconstructionConfig.preset("test")
-    assert a == b and a is not b
+    assert a == b and a is not b and a.sampling is not b.sampling
+    # reconstruct(seq) uses ReconstructionConfig(): the defaults are the "fast" preset
+    assert ReconstructionConfig() == ReconstructionConfig.preset("fast")
+
+
+def test_nested_dicts_dotted_names_and_field_configs():
+    cfg = ReconstructionConfig.from_dict({"sampling": {"n_coarse": 24}, "hashgrid.levels": 6, "field": "grid",
+                                          "grid": {"resolutions": [8, 16]}})
+    assert cfg.sampling.n_coarse == 24 and cfg.sampling.n_fine == ReconstructionConfig().sampling.n_fine
+    assert cfg.hashgrid.levels == 6 and cfg.field_config is cfg.grid and cfg.grid.resolutions == (8, 16)
+    field = cfg.build_field(np.array([[0, 0, 0], [1, 1, 1]], np.float32))
+    assert [g.shape[-1] for g in field.encoding.grids] == [8, 16]
+    assert cfg.replace(**{"objective.weights.density": 0.2}).objective.weights == LossWeights(density=0.2)
+
+
+def test_names_from_before_the_sub_configs_still_work_with_a_warning():
+    with pytest.warns(DeprecationWarning, match="'n_coarse' is deprecated: use 'sampling.n_coarse'"):
+        cfg = ReconstructionConfig.preset("test", n_coarse=24, hash_levels=4, gains={"density": 0.1})
+    assert cfg.sampling.n_coarse == 24 and cfg.hashgrid.levels == 4 and cfg.objective.weights.density == 0.1
+    with pytest.warns(DeprecationWarning, match="config.rays_per_batch is deprecated"):
+        assert cfg.rays_per_batch == cfg.optimizer.rays_per_batch
+    with pytest.warns(DeprecationWarning):  # a config saved in the old flat form loads
+        old = ReconstructionConfig.from_dict({"loss": "dsnerf", "grid_resolutions": [8, 16], "point_noise_m": 1.5,
+                                              "gains": {"color": 1.0, "density": 0.3, "depth": 0.5, "dsnerf": 0.05}})
+    assert old.grid.resolutions == (8, 16) and old.tracking.covariance_scale == 1.5 and old.loss == "dsnerf"
+    with pytest.warns(DeprecationWarning, match="LossGains is deprecated: use LossWeights") as caught:
+        from open3d_pnerf import LossGains
+    assert LossGains is LossWeights and caught[0].filename == __file__
+
+
+def dotted(obj, name: str):
+    for part in name.split("."):
+        obj = getattr(obj, part)
+    return obj
 
 
 # -- fixtures on the bundled sample ----------------------------------------------------------------
 @pytest.fixture(scope="module")
 def scene():
     """The sample at half resolution (160x120), its depth targets and scene box."""
-    seq = load_sample().rescaled(0.5)
+    seq = load_sample().at_scale(0.5)
     targets = depth_targets(seq, poses=seq.gt_poses, progress=False)
     aabb = scene_box(targets, seq.gt_poses, seq.K)
     return seq, targets, aabb
@@ -131,15 +166,19 @@ def config(**overrides) -> ReconstructionConfig:
     return ReconstructionConfig.preset("test", progress=False, **overrides)
 
 
+def make_model(scene, cfg):
+    seq, _, aabb = scene
+    return build_model(cfg, aabb, seq.gt_poses, seq.K, np.zeros((len(seq), 6, 6)))
+
+
 def make_trainer(scene, cfg, cache_frames=64, checkpoint_dir=None, eval_rays=None):
     seq, targets, aabb = scene
-    field = build_field(cfg, aabb)
-    batcher = RayBatcher(seq, seq.gt_poses, targets, field.aabb, "cpu", cfg.seed, cache_frames)
-    return Trainer(field, batcher, cfg, eval_rays, checkpoint_dir)
+    batcher = RayBatcher(seq, targets, "cpu", cfg.seed, cache_frames)
+    return Trainer(make_model(scene, cfg), batcher, cfg, eval_rays, checkpoint_dir)
 
 
 def params(trainer):
-    return [p.detach().clone() for p in trainer.field.parameters()]
+    return [p.detach().clone() for p in trainer.model.field.parameters()]
 
 
 class CountingSequence:
@@ -177,18 +216,20 @@ def pixels_of(rays: Rays, frames: np.ndarray, poses: np.ndarray, K: np.ndarray):
 # -- RayBatcher -----------------------------------------------------------------------------
 def test_ray_batcher_returns_rays_colours_and_targets_of_the_drawn_pixels(scene):
     seq, targets, aabb = scene
-    batcher = RayBatcher(seq, seq.gt_poses, targets, torch.as_tensor(aabb), "cpu", seed=0)
+    batcher = RayBatcher(seq, targets, "cpu", seed=0)
     batch = batcher.sample(500, torch.Generator().manual_seed(0))
-    rays, rgb, mean, sigma = batch.rays, batch.rgb, batch.mean, batch.sigma
+    rays, rgb, mean, sigma = make_model(scene, config()).rays(batch), batch.rgb, batch.mean, batch.sigma
     assert isinstance(rays, Rays) and len(rays) == 500 and len(batch) == 500
     assert rays.origins.shape == (500, 3) and rays.directions.shape == (500, 3)
     assert rgb.shape == (500, 3) and mean.shape == (500,) and sigma.shape == (500,)
     assert (rgb >= 0).all() and (rgb <= 1).all()
     assert (rays.far > rays.near).all() and (rays.near >= 0.05).all()
     frames = frame_of_origins(rays.origins, seq.gt_poses)
+    np.testing.assert_array_equal(batch.frames.numpy(), frames)  # the model's rays start at the pixels' frames
     u, v, (uf, vf) = pixels_of(rays, frames, seq.gt_poses, seq.K)
-    torch.testing.assert_close(uf, torch.as_tensor(u, dtype=torch.float32), atol=1e-3, rtol=0)
-    torch.testing.assert_close(vf, torch.as_tensor(v, dtype=torch.float32), atol=1e-3, rtol=0)
+    torch.testing.assert_close(uf, batch.u, atol=1e-3, rtol=0)  # ... and pass through the drawn pixels' centres
+    torch.testing.assert_close(vf, batch.v, atol=1e-3, rtol=0)
+    np.testing.assert_array_equal(batch.u.numpy(), u)
     h, w = seq.image_size
     assert (u >= 0).all() and (u < w).all() and (v >= 0).all() and (v < h).all()
     # colours are the frames' pixels / 255
@@ -211,9 +252,9 @@ def test_ray_batcher_returns_rays_colours_and_targets_of_the_drawn_pixels(scene)
 
 def test_ray_batcher_targets_lie_on_the_observed_surface(scene):
     seq, targets, aabb = scene
-    batcher = RayBatcher(seq, seq.gt_poses, targets, torch.as_tensor(aabb), "cpu", seed=0)
+    batcher = RayBatcher(seq, targets, "cpu", seed=0)
     batch = batcher.sample(500, torch.Generator().manual_seed(1))
-    rays, mean = batch.rays, batch.mean
+    rays, mean = make_model(scene, config()).rays(batch), batch.mean
     frames = frame_of_origins(rays.origins, seq.gt_poses)
     np.testing.assert_array_equal(batch.frames.numpy(), frames)  # each ray knows its frame
     u, v, _ = pixels_of(rays, frames, seq.gt_poses, seq.K)
@@ -229,26 +270,25 @@ def test_ray_batcher_targets_lie_on_the_observed_surface(scene):
 
 def test_ray_batcher_without_targets_gives_nan_targets(scene):
     seq, _, aabb = scene
-    batcher = RayBatcher(seq, seq.gt_poses, None, torch.as_tensor(aabb), "cpu", seed=0)
+    batcher = RayBatcher(seq, None, "cpu", seed=0)
     batch = batcher.sample(64, torch.Generator().manual_seed(0))
-    rays, rgb, mean, sigma = batch.rays, batch.rgb, batch.mean, batch.sigma
-    assert len(rays) == 64 and rgb.shape == (64, 3)
+    rgb, mean, sigma = batch.rgb, batch.mean, batch.sigma
+    assert len(batch) == 64 and rgb.shape == (64, 3)
     assert torch.isnan(mean).all() and torch.isnan(sigma).all()
 
 
 def test_ray_batcher_cache_is_bounded_and_rotates(scene):
     seq, targets, aabb = scene
     counting = CountingSequence(seq)
-    batcher = RayBatcher(counting, seq.gt_poses, targets, torch.as_tensor(aabb), "cpu", seed=0,
-                         cache_frames=3, refresh_every=4)
+    batcher = RayBatcher(counting, targets, "cpu", seed=0, cache_frames=3, refresh_every=4)
     assert len(batcher.cache) == 3 and len(counting.reads) == 3
     g = torch.Generator().manual_seed(0)
     cached_history = []
     for draw in range(1, 37):
         before = list(batcher.cache)
-        rays = batcher.sample(64, g).rays
+        batch = batcher.sample(64, g)
         assert len(batcher.cache) == 3
-        frames = set(frame_of_origins(rays.origins, seq.gt_poses).tolist())
+        frames = set(batch.frames.tolist())
         assert frames <= set(batcher.cache)  # rays come from decoded frames only
         if draw % 4 == 0:
             assert list(batcher.cache)[:2] == before[1:]  # the oldest frame left
@@ -327,8 +367,8 @@ def test_checkpoint_is_a_weights_only_file(scene, tmp_path):
     trainer.train()
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert state["version"] == CHECKPOINT_VERSION and state["step"] == 2
-    assert set(state["field"]) == set(trainer.field.state_dict())
-    for k, v in trainer.field.state_dict().items():
+    assert set(state["field"]) == set(trainer.model.field.state_dict())
+    for k, v in trainer.model.field.state_dict().items():
         assert torch.equal(state["field"][k], v)
     assert not list(tmp_path.glob(".*tmp*"))  # the atomic write left no temporary file
     assert safe_torch_load(tmp_path / "checkpoint.pt")["step"] == 2
@@ -376,7 +416,7 @@ def test_bad_checkpoints_raise_checkpoint_error(scene, tmp_path):
     with pytest.raises(CheckpointError, match="version"):
         trainer.load_checkpoint(tmp_path / "future.pt")
     # a checkpoint of another field configuration does not load into this one
-    other = make_trainer(scene, config(max_steps=1, hash_levels=4))
+    other = make_trainer(scene, config(max_steps=1, **{"hashgrid.levels": 4}))
     with pytest.raises(CheckpointError, match="does not match"):
         other.load_checkpoint(good)
 
@@ -384,7 +424,7 @@ def test_bad_checkpoints_raise_checkpoint_error(scene, tmp_path):
 def test_nan_loss_raises_training_error_and_writes_no_checkpoint(scene, tmp_path):
     trainer = make_trainer(scene, config(max_steps=5), checkpoint_dir=tmp_path)
     with torch.no_grad():
-        trainer.field.sigma_net[-1].bias.fill_(float("nan"))  # NaN density everywhere
+        trainer.model.field.sigma_net[-1].bias.fill_(float("nan"))  # NaN density everywhere
     with pytest.raises(TrainingError, match="lower lr"):
         trainer.train()
     assert trainer.step == 0
@@ -408,7 +448,7 @@ def test_training_improves_the_psnr_of_evaluation_rays(scene):
                      torch.as_tensor(pix % w, dtype=torch.float32), torch.as_tensor(pix // w, dtype=torch.float32),
                      torch.as_tensor(aabb))
     rgb = torch.as_tensor(frame.color.reshape(-1, 3)[pix] / 255.0, dtype=torch.float32)
-    trainer = make_trainer(scene, config(max_steps=12, eval_every=6), eval_rays=(rays, rgb))
+    trainer = make_trainer(scene, config(max_steps=12, **{"runtime.eval_every": 6}), eval_rays=(rays, rgb))
     before = trainer.evaluate()["eval_psnr"]
     stats = trainer.train()
     assert [hst["step"] for hst in trainer.history] == [6, 12]
@@ -417,35 +457,33 @@ def test_training_improves_the_psnr_of_evaluation_rays(scene):
     assert stats["samples_per_s"] > 0
 
 
-def test_render_field_is_chunk_independent_and_deterministic(scene):
+def test_model_render_is_chunk_independent_and_deterministic(scene):
     seq, _, aabb = scene
-    cfg = config()
-    field = build_field(cfg, aabb)
-    K = torch.as_tensor(seq.K, dtype=torch.float32)
+    model = make_model(scene, config())
     u = torch.arange(0, 160, 7, dtype=torch.float32)
     v = torch.full_like(u, 60.0)
-    rays = make_rays(torch.as_tensor(seq.gt_poses[0], dtype=torch.float32), K, u, v, torch.as_tensor(aabb))
-    a = render_field(field, rays, sampling_of(cfg), chunk=5)
-    b = render_field(field, rays, sampling_of(cfg))
+    rays = model.camera_rays(seq.gt_poses[0], seq.K, u, v)
+    a = model.render(rays, chunk=5)
+    b = model.render(rays)
     assert set(a) == {"color", "depth", "depth_var", "opacity"}
     for k in a:
         torch.testing.assert_close(a[k], b[k])
     assert a["color"].shape == (len(rays), 3) and a["depth"].shape == (len(rays),)
 
 
-def test_depth_gains_decay_to_their_final_factor_and_colour_stays(scene, monkeypatch):
-    cfg = config(gains={"color": 1.0, "density": 0.5, "depth": 0.4, "dsnerf": 0.2}, depth_gain_final_factor=0.1,
-                 max_steps=100)
+def test_depth_weights_decay_to_their_final_factor_and_colour_stays(scene, monkeypatch):
+    cfg = config(max_steps=100, objective={"weights": {"color": 1.0, "density": 0.5, "depth": 0.4, "dsnerf": 0.2},
+                                           "depth_weight_final_factor": 0.1})
     trainer = make_trainer(scene, cfg)
     for step, factor in ((0, 1.0), (50, 0.1 ** 0.5), (100, 0.1)):
         trainer.step = step
-        g = trainer._gains()
+        g = trainer.loss_weights()
         assert g.color == 1.0
         np.testing.assert_allclose([g.density, g.depth], np.array([0.5, 0.4]) * factor, rtol=1e-12)
         assert g.dsnerf == 0.2  # the DS-NeRF baseline keeps its gain
     seen = []
-    real = training_module.total_loss
-    monkeypatch.setattr(training_module, "total_loss", lambda *a: seen.append(a[-1]) or real(*a))
+    real = model_module.total_loss
+    monkeypatch.setattr(model_module, "total_loss", lambda *a: seen.append(a[5]) or real(*a))
     trainer.step = 100
     trainer.train_step()
     assert seen[-1].depth == pytest.approx(0.04)  # the step uses the decayed gains
@@ -453,7 +491,7 @@ def test_depth_gains_decay_to_their_final_factor_and_colour_stays(scene, monkeyp
 
 def test_adam_uses_the_configured_second_moment_decay(scene):
     for beta2 in (0.99, 0.999):
-        trainer = make_trainer(scene, config(adam_beta2=beta2))
+        trainer = make_trainer(scene, config(**{"optimizer.adam_beta2": beta2}))
         assert [g["betas"] for g in trainer.optimizer.param_groups] == [(0.9, beta2)] * 2  # field, exposure gains
 
 
@@ -462,12 +500,13 @@ def test_training_on_cuda_draws_the_same_rays_as_on_cpu(scene):
     """The trainer's generator lives on the CPU: a seeded run on CUDA draws the same rays."""
     seq, targets, aabb = scene
     cfg = config(max_steps=3)
-    rays = []
+    pixels = []
     for device in ("cpu", "cuda"):
-        batcher = RayBatcher(seq, seq.gt_poses, targets, torch.as_tensor(aabb, device=device), device, cfg.seed)
-        rays.append(batcher.sample(64, torch.Generator().manual_seed(0)).rays.origins.cpu())
-    torch.testing.assert_close(rays[0], rays[1])
+        batcher = RayBatcher(seq, targets, device, cfg.seed)
+        batch = batcher.sample(64, torch.Generator().manual_seed(0))
+        pixels.append(torch.stack([batch.u, batch.v, batch.frames.float()]).cpu())
+    torch.testing.assert_close(pixels[0], pixels[1])
     cuda = cfg.replace(device="cuda")
-    field = build_field(cuda, aabb)
-    trainer = Trainer(field, RayBatcher(seq, seq.gt_poses, targets, field.aabb, field.aabb.device, cfg.seed), cuda)
+    model = make_model(scene, cuda)
+    trainer = Trainer(model, RayBatcher(seq, targets, model.device, cfg.seed), cuda)
     assert trainer.train()["steps"] == 3

@@ -1,10 +1,16 @@
-"""Sequences: the RGB-D sequence model, dataset readers, the bundled sample, LLFF image scenes."""
+"""Sequences: the sequence model, one reader module per dataset format behind a registry,
+trajectory files, and the bundled sample."""
 
 from pathlib import Path
 
-from .llff import ImageSequence, SparsePoints, read_llff, sfm_pose_covariances
-from .loaders import load_sequence, read_log_trajectory, write_log_trajectory, write_tum_trajectory
-from .sequence import Frame, RGBDSequence, check_poses
+from ..camera import check_poses
+from .images import FrameReader
+from .llff import read_llff
+from .open3d_folder import write_sequence
+from .registry import FORMATS, Format, load_sequence, register_format
+from .sequence import Frame, RGBDSequence, check_sequence
+from .sfm import SfMData, SparsePoints, sfm_pose_covariances
+from .trajectories import read_log_trajectory, write_log_trajectory, write_tum_trajectory
 
 SAMPLE_DIR = Path(__file__).parent / "sample" / "tum_fr1_xyz"
 
@@ -15,17 +21,7 @@ def load_sample(**kwargs) -> RGBDSequence:
 
 
 __all__ = [
-    "Frame",
-    "ImageSequence",
-    "RGBDSequence",
-    "SAMPLE_DIR",
-    "SparsePoints",
-    "check_poses",
-    "load_sample",
-    "load_sequence",
-    "read_llff",
-    "read_log_trajectory",
-    "sfm_pose_covariances",
-    "write_log_trajectory",
-    "write_tum_trajectory",
+    "FORMATS", "Format", "Frame", "FrameReader", "RGBDSequence", "SAMPLE_DIR", "SfMData", "SparsePoints",
+    "check_poses", "check_sequence", "load_sample", "load_sequence", "read_llff", "read_log_trajectory",
+    "register_format", "sfm_pose_covariances", "write_log_trajectory", "write_sequence", "write_tum_trajectory",
 ]

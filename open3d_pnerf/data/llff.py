@@ -1,4 +1,4 @@
-"""LLFF-style scenes (NeRF's ``nerf_llff_data``) as image-only sequences with SfM poses and points.
+"""LLFF-style scenes (NeRF's ``nerf_llff_data``): image-only sequences with SfM poses and points.
 
 Layout: ``poses_bounds.npy`` (N, 17), ``images_<factor>/`` (N images, sorted by name),
 optional COLMAP model ``sparse/0/{cameras.bin, images.bin, points3D.bin}``.
@@ -18,7 +18,6 @@ images 1..N in name order, as its feature extractor does for a folder and as LLF
 
 from __future__ import annotations
 
-import dataclasses
 import re
 import warnings
 from pathlib import Path
@@ -26,96 +25,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..camera import check_poses, intrinsic_matrix, pinhole
 from ..errors import DatasetError, InputError
 from .colmap import read_cameras_binary, read_images_binary, read_points3d_binary
-from .loaders import _image_files, pinhole
-from .sequence import RGBDSequence, check_intrinsic, check_poses, read_image
+from .images import color_only_reader, image_files, read_image
+from .sequence import RGBDSequence
+from .sfm import SfMData, SparsePoints, sfm_pose_covariances
 
 POSES_FILE = "poses_bounds.npy"
 NEAR_SCALE = 0.75  # read_llff's default scale puts the nearest bound at 1 / 0.75 units, as NeRF's loader
-
-
-@dataclasses.dataclass
-class SparsePoints:
-    """SfM points of an image sequence.
-
-    xyz: (M, 3) float64 world points (scene units); error: (M,) mean reprojection error in
-    pixels of the sequence's images; observed: (M, N) bool, point k is in frame i's track.
-    """
-
-    xyz: np.ndarray
-    error: np.ndarray
-    observed: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.xyz)
-
-    @property
-    def track_length(self) -> np.ndarray:
-        """(M,) number of the sequence's frames observing each point."""
-        return self.observed.sum(1)
-
-
-class ImageSequence(RGBDSequence):
-    """Colour images with SfM camera poses and sparse points, and no depth images.
-
-    A sequence like any other (lazy frames, select, rescaled), whose frames' depth is all
-    zero (invalid). poses: (N, 4, 4) camera-to-world, OpenCV axes, from SfM; covariances:
-    (N, 6, 6) of those poses ([rotation, translation], right perturbation; see
-    :func:`sfm_pose_covariances`); points: :class:`SparsePoints` (error in pixels at the
-    current image scale); bounds: (N, 2) near/far z-depth; scale: scene units per SfM unit.
-    ``reconstruct()`` uses the poses instead of tracking and the points as depth targets
-    (:func:`~open3d_pnerf.targets.sparse_depth_targets`).
-    """
-
-    has_depth = False
-
-    def __init__(self, image_paths, intrinsic, poses, covariances, points: SparsePoints, bounds,
-                 scale: float = 1.0, name: str = "images", image_scale: float = 1.0, timestamps=None):
-        self.image_paths = [Path(p) for p in image_paths]
-        n = len(self.image_paths)
-        check_intrinsic(intrinsic)
-        readers = [_color_reader(p, intrinsic.height, intrinsic.width) for p in self.image_paths]
-        super().__init__(readers, intrinsic, timestamps, name=name, image_scale=image_scale)
-        self.poses = check_poses(poses, n, f"{name}: poses")
-        self.covariances = np.asarray(covariances, np.float64)
-        self.bounds = np.asarray(bounds, np.float64)
-        if self.covariances.shape != (n, 6, 6) or self.bounds.shape != (n, 2):
-            raise InputError(f"{name}: need (N, 6, 6) covariances and (N, 2) bounds for {n} images, got "
-                             f"{self.covariances.shape} and {self.bounds.shape}")
-        if not (np.isfinite(self.covariances).all() and np.isfinite(self.bounds).all()):
-            raise InputError(f"{name}: covariances and bounds must be finite")
-        if points.observed.shape != (len(points), n):
-            raise InputError(f"{name}: points.observed must be (M, {n}), got {points.observed.shape}")
-        self._points = points  # error in pixels of the files' images
-        self.scale = float(scale)
-
-    @property
-    def points(self) -> SparsePoints:
-        """The SfM points, reprojection error in pixels at the sequence's image scale."""
-        sx = self.intrinsic.width / self._base_intrinsic.width
-        return dataclasses.replace(self._points, error=self._points.error * sx)
-
-    def __repr__(self) -> str:
-        h, w = self.image_size
-        return f"ImageSequence({self.name!r}, {len(self)} images, {w}x{h}, {len(self._points)} SfM points)"
-
-    def _derive(self, idx: np.ndarray, image_scale: float) -> "ImageSequence":
-        points = dataclasses.replace(self._points, observed=self._points.observed[:, idx])
-        return ImageSequence([self.image_paths[i] for i in idx], self._base_intrinsic, self.poses[idx],
-                             self.covariances[idx], points, self.bounds[idx], self.scale, self.name, image_scale,
-                             self.timestamps[idx])
-
-
-def _color_reader(path: Path, height: int, width: int):
-    """Reader of an image file as (colour uint8 RGB, all-zero depth)."""
-
-    def read():
-        color = cv2.cvtColor(read_image(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-        return color, np.zeros((height, width), np.float32)
-
-    read.source = str(path)
-    return read
 
 
 def image_factors(path: Path) -> list[int]:
@@ -124,8 +42,8 @@ def image_factors(path: Path) -> list[int]:
     return sorted(int(m.group(1)) for m in found if m and int(m.group(1)) > 0)
 
 
-def read_llff(path, factor: int | None = None, scale: float | None = None, image_scale: float = 1.0) -> ImageSequence:
-    """Read an LLFF scene folder as an :class:`ImageSequence` of the images of ``images_<factor>/``.
+def read_llff(path, factor: int | None = None, scale: float | None = None, image_scale: float = 1.0) -> RGBDSequence:
+    """Read an LLFF scene folder as an image-only sequence of the images of ``images_<factor>/``.
 
     factor: the image folder (default: the largest N with an ``images_N/``, i.e. the smallest
     images). The focal length of poses_bounds.npy is scaled by the loaded/full image size; the
@@ -165,7 +83,7 @@ def read_llff(path, factor: int | None = None, scale: float | None = None, image
     image_dir = path / f"images_{factor}"
     if not image_dir.is_dir():
         raise DatasetError(f"{path}: images_{factor}/ not found for factor {factor}")
-    image_paths = _image_files(image_dir)
+    image_paths = image_files(image_dir)
     if len(image_paths) != len(rows):
         raise DatasetError(f"{image_dir}: {len(image_paths)} images but {poses_file} has {len(rows)} poses")
     height, width = read_image(image_paths[0], cv2.IMREAD_COLOR).shape[:2]
@@ -196,23 +114,24 @@ def read_llff(path, factor: int | None = None, scale: float | None = None, image
             )
         cx, cy = camera.principal_point
     intrinsic = pinhole(width, height, focal_full * sx, focal_full * sy, cx * sx - 0.5, cy * sy - 0.5)
-    xyz, error, observed = _sparse_points(model, image_paths, len(rows))
-    points = SparsePoints(xyz * scale, error * sx, observed)
-    K = np.asarray(intrinsic.intrinsic_matrix)
+    found = _sparse_points(model, image_paths, len(rows))
+    points = SparsePoints(found.xyz * scale, found.error * sx, found.observed)
+    K = intrinsic_matrix(intrinsic)
     if len(points):
-        covariances = sfm_pose_covariances(poses, K, points.xyz, points.error, observed)
+        covariances = sfm_pose_covariances(poses, K, points.xyz, points.error, points.observed)
     else:
         covariances = np.tile(np.eye(6), (len(rows), 1, 1))
-    return ImageSequence(image_paths, intrinsic, poses, covariances, points, rows[:, 15:17] * scale, scale,
-                         path.name, image_scale)
+    sfm = SfMData(poses, covariances, points, rows[:, 15:17] * scale, scale)
+    readers = [color_only_reader(p, intrinsic.height, intrinsic.width) for p in image_paths]
+    return RGBDSequence(readers, intrinsic, name=path.name, image_scale=image_scale, has_depth=False, sfm=sfm)
 
 
-def _sparse_points(model: Path, image_paths: list[Path], n: int):
-    """(xyz (M, 3), error (M,) full-resolution pixels, observed (M, n)) from points3D.bin."""
+def _sparse_points(model: Path, image_paths: list[Path], n: int) -> SparsePoints:
+    """The points of points3D.bin (error in full-resolution pixels, COLMAP units) seen by the n images."""
     points_file = model / "points3D.bin"
     if not points_file.is_file():
         warnings.warn(f"{points_file} not found: the scene has no sparse points")
-        return np.empty((0, 3)), np.empty(0), np.zeros((0, n), bool)
+        return SparsePoints.empty(n)
     points = read_points3d_binary(points_file)
     if (model / "images.bin").is_file():
         images = read_images_binary(model / "images.bin")
@@ -226,51 +145,8 @@ def _sparse_points(model: Path, image_paths: list[Path], n: int):
         observed = points.observed(image_rows, n)
     except InputError as exc:
         raise DatasetError(f"{points_file}: {exc}") from None
-    return points.xyz, points.error, observed
+    return SparsePoints(points.xyz, points.error, observed)
 
 
-def sfm_pose_covariances(poses: np.ndarray, K: np.ndarray, xyz: np.ndarray, error: np.ndarray,
-                         observed: np.ndarray, min_error: float = 0.01) -> np.ndarray:
-    """(N, 6, 6) covariance of each camera pose from the SfM points it observes.
-
-    poses: (N, 4, 4) camera-to-world; K: (3, 3); xyz: (M, 3); error: (M,) reprojection error
-    (pixels of K's images, floored at `min_error`), taken as the standard deviation of each
-    observation; observed: (M, N) bool. With the points held fixed, the Gauss-Newton
-    information of frame i is sum_k J_k^T J_k / e_k^2, J_k (2, 6) the derivative of point k's
-    projection with respect to a right perturbation [rotation, translation] of the pose (as
-    the tracker's covariances); the covariance is its inverse. Holding the points fixed
-    ignores their own uncertainty, so these are lower bounds. A frame seeing fewer than 3
-    points, or points that do not fix its pose, gets an effectively unbounded covariance (1e6
-    on its diagonal) and a warning.
-    """
-    poses = check_poses(poses, what="sfm_pose_covariances(): poses")
-    fx, fy = K[0, 0], K[1, 1]
-    var = np.maximum(np.asarray(error, np.float64), min_error) ** 2
-    out = np.empty((len(poses), 6, 6))
-    for i, pose in enumerate(poses):
-        idx = np.flatnonzero(observed[:, i])
-        q = (xyz[idx] - pose[:3, 3]) @ pose[:3, :3]  # camera frame
-        front = q[:, 2] > 1e-9
-        idx, q = idx[front], q[front]
-        if len(idx) < 3:
-            warnings.warn(f"frame {i} observes {len(idx)} SfM point(s): its pose covariance is unbounded")
-            out[i] = np.eye(6) * 1e6
-            continue
-        x, y, z = q.T
-        proj = np.zeros((len(q), 2, 3))  # d(u, v) / dq
-        proj[:, 0, 0], proj[:, 0, 2] = fx / z, -fx * x / z**2
-        proj[:, 1, 1], proj[:, 1, 2] = fy / z, -fy * y / z**2
-        dq = np.zeros((len(q), 3, 6))  # q' = exp(-xi) q ~ q + q x w - rho
-        dq[:, 0, 1], dq[:, 0, 2] = -z, y
-        dq[:, 1, 0], dq[:, 1, 2] = z, -x
-        dq[:, 2, 0], dq[:, 2, 1] = -y, x
-        dq[:, :, 3:] = -np.eye(3)
-        jac = proj @ dq
-        info = np.einsum("kai,kaj,k->ij", jac, jac, 1.0 / var[idx])
-        if np.linalg.cond(info) > 1e12:  # e.g. coincident or collinear points
-            warnings.warn(f"frame {i}: its {len(idx)} SfM points do not fix its pose (degenerate "
-                          "geometry): its pose covariance is unbounded")
-            out[i] = np.eye(6) * 1e6
-            continue
-        out[i] = np.linalg.inv(info)
-    return out
+def is_llff(path: Path) -> bool:
+    return (path / POSES_FILE).is_file()

@@ -1,4 +1,5 @@
-"""The RGB-D sequence model: lazily loaded frames, one depth intrinsic, optional GT poses.
+"""The sequence model: lazily loaded frames, one depth intrinsic, optional ground truth, and
+for image-only sequences their structure from motion.
 
 Inside the library depth is z-depth in metres (float32, 0 = invalid) and colour is uint8
 (H, W, 3) RGB. Poses are camera-to-world 4x4 float64 in metres, OpenCV camera axes.
@@ -7,25 +8,26 @@ Inside the library depth is z-depth in metres (float32, 0 = invalid) and colour 
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
-from typing import Callable, Sequence
+import warnings
+from typing import Sequence
 
 import cv2
 import numpy as np
 import open3d as o3d
 
-from ..errors import DatasetError, InputError, PoseError
-
-FrameReader = Callable[[], tuple[np.ndarray, np.ndarray]]
-"""Zero-argument callable returning (colour uint8 HxWx3, depth float32 HxW metres); an
-optional ``source`` attribute (str) names where the frame comes from in error messages."""
+from ..camera import check_intrinsic, check_poses, intrinsic_matrix, scale_intrinsic
+from ..errors import DatasetError, InputError
+from .images import FrameReader, constant_reader, depth_in_metres
+from .sfm import SfMData
 
 MEDIAN_DEPTH_LIMIT = 20.0  # metres: an indoor RGB-D median beyond this means a wrong depth scale
+_SFM_ATTRIBUTES = ("poses", "covariances", "points", "bounds", "scale")  # ImageSequence's, before SfMData
 
 
 @dataclasses.dataclass
 class Frame:
-    """One RGB-D frame: colour (H, W, 3) uint8 RGB, depth (H, W) float32 metres, 0 = invalid."""
+    """One RGB-D frame: colour (H, W, 3) uint8 RGB, depth (H, W) float32 metres, 0 = invalid
+    (all zero in a sequence without depth images)."""
 
     color: np.ndarray
     depth: np.ndarray
@@ -33,123 +35,17 @@ class Frame:
     index: int
 
 
-def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    """Read an image file with OpenCV, raising DatasetError naming the file if it is missing,
-    unreadable or truncated (OpenCV decodes a truncated JPEG silently: its end marker is checked)."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise DatasetError(f"image file not found: {path}") from None
-    except OSError as exc:
-        raise DatasetError(f"cannot read image file {path} ({exc})") from None
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
-    truncated_jpeg = data[:2] == b"\xff\xd8" and b"\xff\xd9" not in data[-4096:]
-    if image is None or image.size == 0 or truncated_jpeg:
-        raise DatasetError(f"cannot decode image (unreadable or truncated): {path}")
-    return image
-
-
-def depth_in_metres(raw: np.ndarray, depth_scale: float, what: str) -> np.ndarray:
-    """Depth as float32 metres: uint16 is raw sensor units (divided by depth_scale), float is metres.
-
-    Any other type (8-bit or multi-channel images, other integers) raises DatasetError naming `what`.
-    """
-    raw = np.asarray(raw)
-    if raw.ndim == 2 and raw.dtype == np.uint16:
-        return raw.astype(np.float32) / np.float32(depth_scale)
-    if raw.ndim == 2 and raw.dtype in (np.float32, np.float64):
-        return raw.astype(np.float32)
-    raise DatasetError(
-        f"{what}: depth must be single-channel uint16 (raw units, divided by depth_scale) or "
-        f"float32/float64 metres, got {raw.dtype} with shape {raw.shape}"
-    )
-
-
-def file_reader(color_path: Path, depth_path: Path, depth_scale: float, invalid_raw: int | None = None) -> FrameReader:
-    """A reader for a colour image file and a depth image (see :func:`depth_in_metres`).
-
-    Raw depth values >= invalid_raw (e.g. 7-Scenes' 65535) are set to 0 (invalid). The
-    reader's ``source`` names both files, so errors about the frame can name them.
-    """
-
-    def read() -> tuple[np.ndarray, np.ndarray]:
-        color = cv2.cvtColor(read_image(color_path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-        raw = read_image(depth_path, cv2.IMREAD_UNCHANGED)
-        depth = depth_in_metres(raw, depth_scale, str(depth_path))
-        if invalid_raw is not None:
-            depth[raw >= invalid_raw] = 0
-        return color, depth
-
-    read.source = f"{color_path}, {depth_path}"
-    return read
-
-
-def check_intrinsic(intrinsic, what: str = "intrinsic") -> o3d.camera.PinholeCameraIntrinsic:
-    """Return `intrinsic` if it is a PinholeCameraIntrinsic with positive size and focal lengths."""
-    if not isinstance(intrinsic, o3d.camera.PinholeCameraIntrinsic):
-        raise InputError(
-            f"{what} must be an open3d.camera.PinholeCameraIntrinsic, got {type(intrinsic).__name__}"
-        )
-    fx, fy = intrinsic.get_focal_length()
-    cx, cy = intrinsic.get_principal_point()
-    w, h = intrinsic.width, intrinsic.height
-    if w <= 0 or h <= 0 or not (fx > 0 and fy > 0):
-        raise InputError(f"{what} must have positive width, height and focal lengths, got {w}x{h}, fx={fx}, fy={fy}")
-    if not (0 <= cx <= w and 0 <= cy <= h):
-        raise InputError(
-            f"{what}: principal point ({cx}, {cy}) lies outside the {w}x{h} image; is the intrinsic "
-            "for another image size?"
-        )
-    return intrinsic
-
-
-def check_poses(poses, n: int | None = None, what: str = "poses") -> np.ndarray:
-    """Return poses as (N, 4, 4) float64 after checking they are finite rigid transforms."""
-    arr = np.asarray(poses, dtype=np.float64)
-    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
-        raise PoseError(f"{what} must have shape (N, 4, 4), got {arr.shape}")
-    if n is not None and arr.shape[0] != n:
-        raise PoseError(f"{what} has {arr.shape[0]} poses for {n} frames")
-    at = lambda bad: f" at frames {np.flatnonzero(bad)[:10].tolist()}" if len(arr) > 1 else ""  # noqa: E731
-    bad = ~np.isfinite(arr).all(axis=(1, 2))
-    if bad.any():
-        raise PoseError(f"{what} contain NaN/inf{at(bad)}")
-    rot = arr[:, :3, :3]
-    ortho = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(rot)
-    bottom = np.abs(arr[:, 3] - [0, 0, 0, 1]).max(axis=1)
-    bad = (ortho > 1e-3) | (np.abs(det - 1) > 1e-3) | (bottom > 1e-9)
-    if bad.any():
-        raise PoseError(
-            f"{what} are not rigid transforms (rotation not orthonormal, det != 1 or last row "
-            f"not [0,0,0,1]){at(bad)}"
-        )
-    return arr
-
-
-def scale_intrinsic(intrinsic: o3d.camera.PinholeCameraIntrinsic, scale: float):
-    """Intrinsic of the image resized by `scale` (pixel centres at integer coordinates)."""
-    width, height = round(intrinsic.width * scale), round(intrinsic.height * scale)
-    sx, sy = width / intrinsic.width, height / intrinsic.height
-    fx, fy = intrinsic.get_focal_length()
-    cx, cy = intrinsic.get_principal_point()
-    return o3d.camera.PinholeCameraIntrinsic(
-        width, height, fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5
-    )
-
-
 class RGBDSequence:
-    """A lazily loaded RGB-D sequence.
+    """A lazily loaded sequence of colour frames with depth images (or, for image-only
+    sequences, with structure from motion instead).
 
     Frames are read from their source only when indexed, so a 2,000-frame sequence never
     sits in memory at once. ``seq[i]`` gives a :class:`Frame`; ``seq.intrinsic`` is the
     depth camera's ``o3d.camera.PinholeCameraIntrinsic`` (colour is registered to it unless
     ``color_intrinsic`` says otherwise); ``seq.gt_poses`` is (N, 4, 4) camera-to-world or None.
-    has_depth is False for image-only sequences (:class:`~open3d_pnerf.data.llff.ImageSequence`).
+    has_depth: False for image-only sequences (their frames' depth is all zero); those carry
+    ``sfm`` (:class:`~open3d_pnerf.data.sfm.SfMData`: poses, covariances, sparse points).
     """
-
-    has_depth = True
 
     def __init__(
         self,
@@ -161,6 +57,8 @@ class RGBDSequence:
         color_intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None,
         name: str = "sequence",
         image_scale: float = 1.0,
+        has_depth: bool = True,
+        sfm: SfMData | None = None,
     ):
         self._readers = list(readers)
         if not self._readers:
@@ -182,9 +80,13 @@ class RGBDSequence:
             raise InputError(f"depth_trunc must be >= 0 metres (0 = no truncation), got {depth_trunc}")
         if not (0 < image_scale <= 1):
             raise InputError(f"image_scale must be in (0, 1], got {image_scale}")
+        if not has_depth and sfm is None:
+            raise InputError(f"{name}: a sequence without depth images needs its structure from motion (sfm=)")
         self.depth_trunc = float(depth_trunc)
         self.image_scale = float(image_scale)
         self.name = name
+        self.has_depth = bool(has_depth)
+        self._base_sfm = None if sfm is None else sfm.check(n, name)
 
     # -- geometry ---------------------------------------------------------------------
     @property
@@ -201,12 +103,27 @@ class RGBDSequence:
     @property
     def K(self) -> np.ndarray:
         """(3, 3) float64 depth intrinsic matrix at the sequence's image scale."""
-        return np.array(self.intrinsic.intrinsic_matrix, dtype=np.float64)
+        return intrinsic_matrix(self.intrinsic)
 
     @property
     def image_size(self) -> tuple[int, int]:
         """(height, width) of the frames as returned by indexing."""
         return self.intrinsic.height, self.intrinsic.width
+
+    @property
+    def sfm(self) -> SfMData | None:
+        """The structure from motion of an image-only sequence (None for RGB-D), with
+        reprojection errors in pixels at the sequence's image scale."""
+        if self._base_sfm is None:
+            return None
+        return self._base_sfm.at_pixel_scale(self.intrinsic.width / self._base_intrinsic.width)
+
+    def __getattr__(self, name: str):
+        # ImageSequence's attributes from before SfMData became a part of the sequence
+        if name in _SFM_ATTRIBUTES and self.__dict__.get("_base_sfm") is not None:
+            warnings.warn(f"sequence.{name} is deprecated; use sequence.sfm.{name}", DeprecationWarning, stacklevel=2)
+            return getattr(self.sfm, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     # -- container protocol -----------------------------------------------------------
     def __len__(self) -> int:
@@ -227,6 +144,8 @@ class RGBDSequence:
 
     def __repr__(self) -> str:
         h, w = self.image_size
+        if not self.has_depth:
+            return f"RGBDSequence({self.name!r}, {len(self)} images, {w}x{h}, no depth, {len(self.sfm.points)} SfM points)"
         gt = "with" if self.gt_poses is not None else "without"
         return f"RGBDSequence({self.name!r}, {len(self)} frames, {w}x{h}, {gt} GT poses)"
 
@@ -283,6 +202,8 @@ class RGBDSequence:
             self._base_color_intrinsic,
             self.name,
             image_scale,
+            self.has_depth,
+            None if self._base_sfm is None else self._base_sfm.select(idx),
         )
 
     def select(self, indices) -> "RGBDSequence":
@@ -298,9 +219,19 @@ class RGBDSequence:
             raise InputError(f"select(): no frames selected from {self.name}")
         return self._derive(idx, self.image_scale)
 
-    def rescaled(self, image_scale: float) -> "RGBDSequence":
-        """The same frames resized by `image_scale` (in (0, 1]) relative to the files."""
+    def at_scale(self, image_scale: float) -> "RGBDSequence":
+        """The same frames at `image_scale` (in (0, 1]) of the source images' size."""
         return self._derive(np.arange(len(self)), image_scale)
+
+    def scaled_by(self, factor: float) -> "RGBDSequence":
+        """The same frames resized by `factor` relative to this sequence's current size."""
+        return self.at_scale(self.image_scale * factor)
+
+    def rescaled(self, image_scale: float) -> "RGBDSequence":
+        """Deprecated name of :meth:`at_scale` (the scale is absolute, not relative)."""
+        warnings.warn("RGBDSequence.rescaled(s) is deprecated: use at_scale(s) (absolute) or scaled_by(f) "
+                      "(relative)", DeprecationWarning, stacklevel=2)
+        return self.at_scale(image_scale)
 
     def to_open3d(self, index: int) -> o3d.geometry.RGBDImage:
         """Frame `index` as an ``o3d.geometry.RGBDImage`` (depth float metres, colour uint8).
@@ -321,7 +252,7 @@ class RGBDSequence:
         """Resample a colour image onto the depth image's pixel grid (identity if registered)."""
         if self._base_color_intrinsic is None:
             return color
-        kd, kc = self.K, np.asarray(self.color_intrinsic.intrinsic_matrix)
+        kd, kc = self.K, intrinsic_matrix(self.color_intrinsic)
         h, w = self.image_size
         u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
         map_x = (u - kd[0, 2]) * (kc[0, 0] / kd[0, 0]) + kc[0, 2]
@@ -366,21 +297,13 @@ class RGBDSequence:
                     f"images[{i}] must be an o3d.geometry.RGBDImage or a (color, depth) pair, "
                     f"got {type(image).__name__}"
                 )
-            readers.append(_constant_reader(np.array(color), depth_in_metres(depth, depth_scale, f"images[{i}]"),
-                                            f"images[{i}]"))
+            readers.append(constant_reader(np.array(color), depth_in_metres(depth, depth_scale, f"images[{i}]"),
+                                           f"images[{i}]"))
         seq = cls(readers, intrinsic, timestamps, gt_poses, depth_trunc, name=name)
         for i in range(1, len(seq)):
             seq[i]  # validates the frame
         check_first_frame(seq)
         return seq
-
-
-def _constant_reader(color: np.ndarray, depth: np.ndarray, source: str) -> FrameReader:
-    def read():
-        return color, depth
-
-    read.source = source
-    return read
 
 
 def check_sequence(sequence, min_frames: int = 1, what: str = "sequence", needs_depth: bool = False) -> RGBDSequence:
@@ -392,7 +315,7 @@ def check_sequence(sequence, min_frames: int = 1, what: str = "sequence", needs_
         raise InputError(f"{what} has {len(sequence)} frame(s); at least {min_frames} frames are needed")
     if needs_depth and not sequence.has_depth:
         raise InputError(f"{what}: {sequence.name} has no depth images (an image-only sequence); this needs "
-                         "RGB-D frames. Its camera poses come from SfM: sequence.poses")
+                         "RGB-D frames. Its camera poses come from SfM: sequence.sfm.poses")
     return sequence
 
 

@@ -1,9 +1,10 @@
-"""Scene fields (hash grid, vanilla NeRF MLP) and their input encodings."""
+"""Scene fields (hash grid, dense grid, vanilla NeRF MLP) and their input encodings. Which one a
+reconstruction uses, and with what settings, is chosen by its config (config.FIELD_CONFIGS)."""
 
 from .encodings import DenseGridEncoding, FrequencyEncoding, HashGridEncoding
-from .fields import FIELDS, EncodedField, Field, GridField, HashGridField, VanillaNeRFField, make_field
+from .fields import EncodedField, Field, GridField, HashGridField, VanillaNeRFField
 
 __all__ = [
-    "FIELDS", "DenseGridEncoding", "EncodedField", "Field", "FrequencyEncoding", "GridField", "HashGridEncoding",
-    "HashGridField", "VanillaNeRFField", "make_field",
+    "DenseGridEncoding", "EncodedField", "Field", "FrequencyEncoding", "GridField", "HashGridEncoding",
+    "HashGridField", "VanillaNeRFField",
 ]

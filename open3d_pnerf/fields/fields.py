@@ -112,11 +112,3 @@ class VanillaNeRFField(Field):
             return sigma, None
         rgb = torch.sigmoid(self.color_head(torch.cat([self.feature(h), self.dir_encoding(d)], -1)))
         return sigma, rgb
-
-
-FIELDS = {"grid": GridField, "hashgrid": HashGridField, "vanilla": VanillaNeRFField}
-
-
-def make_field(name: str, aabb, **kwargs) -> Field:
-    """Build a field by name: 'hashgrid' (the default), 'grid' or 'vanilla' (the paper's MLP)."""
-    return FIELDS[name](aabb, **kwargs)

@@ -51,9 +51,15 @@ def composite(t, edges, sigma, rgb) -> RayRender:
 class SamplingConfig:
     """Samples per ray: stratified coarse, importance fine, and depth-guided (where a target exists)."""
 
-    n_coarse: int = 32
-    n_fine: int = 32
+    n_coarse: int = 16
+    """Stratified samples per ray (coarse pass)."""
+    n_fine: int = 8
+    """Importance samples per ray drawn from the coarse weights (fine pass)."""
     n_guided: int = 16
+    """Samples in mean +- 3 sigma of the depth target (extra importance samples without one)."""
+    depth_guided: bool = True
+    """Place the n_guided samples around the depth target when training with depth terms
+    (False: extra importance samples)."""
 
 
 def render_rays(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..data.sequence import check_poses
+from ..camera import check_poses
 from ..errors import PoseError
 
 

@@ -1,4 +1,4 @@
-"""Tests of open3d_pnerf.baselines: Open3D TSDF fusion on a synthetic plane and the sample."""
+"""Tests of open3d_pnerf.tsdf: Open3D TSDF fusion on a synthetic plane and the sample."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from open3d_pnerf.baselines import TSDFVolume, tsdf_fusion
 from open3d_pnerf.errors import InputError, PoseError
+from open3d_pnerf.tsdf import TSDFVolume, tsdf_fusion
 
 Z0 = 1.0
 VOXEL = 0.02

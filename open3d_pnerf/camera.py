@@ -1,0 +1,185 @@
+"""Pinhole cameras in the library's conventions, implemented once.
+
+* Poses are camera-to-world (4, 4) float64 in metres, OpenCV camera axes (x right, y down,
+  z forward). Open3D's ``extrinsic`` is world-to-camera: :func:`extrinsic_to_pose` and
+  :func:`pose_to_extrinsic` convert at the boundary.
+* Pixel (u, v) (u column, v row) has its centre at integer coordinates.
+* Depth is z-depth in metres. The camera ray of pixel (u, v) is k = K^-1 [u, v, 1] (unit
+  camera-z), so a point at z-depth z lies at z k and at Euclidean distance t = z ||k||
+  along the unit ray k / ||k|| (:func:`ray_norms` holds ||k||).
+
+The functions on arrays work on NumPy arrays and on torch tensors alike (the result has the
+input's type); those on intrinsics take ``o3d.camera.PinholeCameraIntrinsic``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+
+from .errors import InputError, PoseError
+
+
+# -- intrinsics ------------------------------------------------------------------------------
+def pinhole(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> o3d.camera.PinholeCameraIntrinsic:
+    """Shorthand for ``o3d.camera.PinholeCameraIntrinsic`` (image size in pixels)."""
+    return o3d.camera.PinholeCameraIntrinsic(int(width), int(height), fx, fy, cx, cy)
+
+
+def intrinsic_matrix(intrinsic: o3d.camera.PinholeCameraIntrinsic) -> np.ndarray:
+    """(3, 3) float64 K of an intrinsic."""
+    return np.array(intrinsic.intrinsic_matrix, dtype=np.float64)
+
+
+def check_intrinsic(intrinsic, what: str = "intrinsic") -> o3d.camera.PinholeCameraIntrinsic:
+    """Return `intrinsic` if it is a PinholeCameraIntrinsic with positive size and focal lengths
+    and its principal point inside the image."""
+    if not isinstance(intrinsic, o3d.camera.PinholeCameraIntrinsic):
+        raise InputError(
+            f"{what} must be an open3d.camera.PinholeCameraIntrinsic, got {type(intrinsic).__name__}"
+        )
+    fx, fy = intrinsic.get_focal_length()
+    cx, cy = intrinsic.get_principal_point()
+    w, h = intrinsic.width, intrinsic.height
+    if w <= 0 or h <= 0 or not (fx > 0 and fy > 0):
+        raise InputError(f"{what} must have positive width, height and focal lengths, got {w}x{h}, fx={fx}, fy={fy}")
+    if not (0 <= cx <= w and 0 <= cy <= h):
+        raise InputError(
+            f"{what}: principal point ({cx}, {cy}) lies outside the {w}x{h} image; is the intrinsic "
+            "for another image size?"
+        )
+    return intrinsic
+
+
+def scale_intrinsic(intrinsic: o3d.camera.PinholeCameraIntrinsic, scale: float) -> o3d.camera.PinholeCameraIntrinsic:
+    """Intrinsic of the image resized by `scale` (pixel centres stay at integer coordinates)."""
+    width, height = round(intrinsic.width * scale), round(intrinsic.height * scale)
+    sx, sy = width / intrinsic.width, height / intrinsic.height
+    fx, fy = intrinsic.get_focal_length()
+    cx, cy = intrinsic.get_principal_point()
+    return o3d.camera.PinholeCameraIntrinsic(
+        width, height, fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5
+    )
+
+
+# -- poses -----------------------------------------------------------------------------------
+def check_poses(poses, n: int | None = None, what: str = "poses") -> np.ndarray:
+    """Return poses as (N, 4, 4) float64 after checking they are finite rigid transforms."""
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise PoseError(f"{what} must have shape (N, 4, 4), got {arr.shape}")
+    if n is not None and arr.shape[0] != n:
+        raise PoseError(f"{what} has {arr.shape[0]} poses for {n} frames")
+    at = lambda bad: f" at frames {np.flatnonzero(bad)[:10].tolist()}" if len(arr) > 1 else ""  # noqa: E731
+    bad = ~np.isfinite(arr).all(axis=(1, 2))
+    if bad.any():
+        raise PoseError(f"{what} contain NaN/inf{at(bad)}")
+    rot = arr[:, :3, :3]
+    ortho = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(rot)
+    bottom = np.abs(arr[:, 3] - [0, 0, 0, 1]).max(axis=1)
+    bad = (ortho > 1e-3) | (np.abs(det - 1) > 1e-3) | (bottom > 1e-9)
+    if bad.any():
+        raise PoseError(
+            f"{what} are not rigid transforms (rotation not orthonormal, det != 1 or last row "
+            f"not [0,0,0,1]){at(bad)}"
+        )
+    return arr
+
+
+def pose_to_extrinsic(pose: np.ndarray) -> np.ndarray:
+    """Open3D's world-to-camera extrinsic (4, 4) of a camera-to-world pose (4, 4) (or (N, 4, 4))."""
+    return np.linalg.inv(np.asarray(pose, np.float64))
+
+
+def extrinsic_to_pose(extrinsic: np.ndarray) -> np.ndarray:
+    """Camera-to-world pose (4, 4) (or (N, 4, 4)) of Open3D's world-to-camera extrinsic."""
+    return np.linalg.inv(np.asarray(extrinsic, np.float64))
+
+
+# -- pixels and rays (NumPy or torch) ----------------------------------------------------------
+def _backend(a):
+    """The array module of `a`: numpy, or torch for a tensor."""
+    if type(a).__module__.startswith("torch"):
+        import torch
+
+        return torch
+    return np
+
+
+def pixel_grid(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(u, v), each (H, W) int: the column and row of every pixel."""
+    return np.meshgrid(np.arange(width), np.arange(height))
+
+
+def camera_rays(K, u, v):
+    """(..., 3) camera-frame rays K^-1 [u, v, 1] (unit z) of pixels (u, v) (...).
+
+    K: (3, 3), or (..., 3, 3) per pixel (torch)."""
+    xp = _backend(u)
+    fx, fy, cx, cy = K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]
+    x = (u - cx) / fx
+    y = (v - cy) / fy
+    return xp.stack([x, y, xp.ones_like(x)], -1)
+
+
+def ray_norms(K: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W) float32 ||K^-1 [u, v, 1]||: metres along the ray per metre of z-depth at each pixel."""
+    u, v = pixel_grid(height, width)
+    return np.linalg.norm(camera_rays(K, u, v), axis=-1).astype(np.float32)
+
+
+def unit_rays(K: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W, 3) unit camera-frame ray directions of every pixel."""
+    u, v = pixel_grid(height, width)
+    d = camera_rays(K, u, v)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def unproject(K, u, v, z):
+    """(..., 3) camera-frame points of pixels (u, v) (...) at z-depths z (...) metres."""
+    return camera_rays(K, u, v) * z[..., None]
+
+
+def backproject(depth: np.ndarray, K: np.ndarray, pose: np.ndarray | None = None, mask: np.ndarray | None = None):
+    """Points of the masked pixels of a z-depth map (H, W) metres, and their flat pixel indices.
+
+    mask: (H, W) bool (default: depth > 0). pose: camera-to-world (4, 4) for world points, None
+    for camera-frame points. Returns (M, 3) float64 points and (M,) indices v * W + u.
+    """
+    h, w = depth.shape
+    flat = np.flatnonzero(depth > 0 if mask is None else mask)
+    v, u = np.divmod(flat, w)
+    pts = unproject(K, u, v, depth.ravel()[flat].astype(np.float64))
+    if pose is not None:
+        pts = pts @ pose[:3, :3].T + pose[:3, 3]
+    return pts, flat
+
+
+def project(K, points):
+    """Pixel coordinates (u, v), each (...), of camera-frame points (..., 3) with z > 0."""
+    x, y, z = points[..., 0], points[..., 1], points[..., 2]
+    return x / z * K[0, 0] + K[0, 2], y / z * K[1, 1] + K[1, 2]
+
+
+def nearest_pixels(K: np.ndarray, points: np.ndarray, height: int, width: int):
+    """Flat indices v * W + u (M,) of the pixels nearest to the projections of camera-frame
+    points (M, 3) with z > 0, and the (M,) mask of those inside the image."""
+    u, v = project(K, points)
+    u, v = np.round(u).astype(np.int64), np.round(v).astype(np.int64)
+    return v * width + u, (u >= 0) & (u < width) & (v >= 0) & (v < height)
+
+
+def nearest_per_pixel(pix: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """A z-buffer: indices of the smallest z among entries sharing a flat pixel index, sorted by pixel."""
+    order = np.lexsort((z, pix))
+    first = np.unique(pix[order], return_index=True)[1]
+    return order[first]
+
+
+def check_covariances(covariances, n: int, what: str = "covariances") -> np.ndarray:
+    """(n, 6, 6) float64 pose covariances (zeros for None), checked finite and of that shape."""
+    covs = np.zeros((n, 6, 6)) if covariances is None else np.asarray(covariances, np.float64)
+    if covs.shape != (n, 6, 6) or not np.isfinite(covs).all():
+        raise InputError(f"{what} must be finite with shape ({n}, 6, 6), got shape {covs.shape}")
+    return covs

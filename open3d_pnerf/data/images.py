@@ -1,0 +1,99 @@
+"""Image decoding shared by every reader: checked image reads, depth units, frame readers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from ..errors import DatasetError
+
+FrameReader = Callable[[], tuple[np.ndarray, np.ndarray]]
+"""Zero-argument callable returning (colour uint8 HxWx3, depth float32 HxW metres); an
+optional ``source`` attribute (str) names where the frame comes from in error messages."""
+
+IMAGE_EXT = {".png", ".jpg", ".jpeg"}
+
+
+def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    """Read an image file with OpenCV, raising DatasetError naming the file if it is missing,
+    unreadable or truncated (OpenCV decodes a truncated JPEG silently: its end marker is checked)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"image file not found: {path}") from None
+    except OSError as exc:
+        raise DatasetError(f"cannot read image file {path} ({exc})") from None
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
+    truncated_jpeg = data[:2] == b"\xff\xd8" and b"\xff\xd9" not in data[-4096:]
+    if image is None or image.size == 0 or truncated_jpeg:
+        raise DatasetError(f"cannot decode image (unreadable or truncated): {path}")
+    return image
+
+
+def read_color(path: Path) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of a colour image file (DatasetError naming the file if unreadable)."""
+    return cv2.cvtColor(read_image(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def image_files(folder: Path) -> list[Path]:
+    """The PNG and JPEG files of a folder, sorted by name."""
+    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_EXT)
+
+
+def depth_in_metres(raw: np.ndarray, depth_scale: float, what: str) -> np.ndarray:
+    """Depth as float32 metres: uint16 is raw sensor units (divided by depth_scale), float is metres.
+
+    Any other type (8-bit or multi-channel images, other integers) raises DatasetError naming `what`.
+    """
+    raw = np.asarray(raw)
+    if raw.ndim == 2 and raw.dtype == np.uint16:
+        return raw.astype(np.float32) / np.float32(depth_scale)
+    if raw.ndim == 2 and raw.dtype in (np.float32, np.float64):
+        return raw.astype(np.float32)
+    raise DatasetError(
+        f"{what}: depth must be single-channel uint16 (raw units, divided by depth_scale) or "
+        f"float32/float64 metres, got {raw.dtype} with shape {raw.shape}"
+    )
+
+
+def file_reader(color_path: Path, depth_path: Path, depth_scale: float, invalid_raw: int | None = None) -> FrameReader:
+    """A reader for a colour image file and a depth image (see :func:`depth_in_metres`).
+
+    Raw depth values >= invalid_raw (e.g. 7-Scenes' 65535) are set to 0 (invalid). The
+    reader's ``source`` names both files, so errors about the frame can name them.
+    """
+
+    def read() -> tuple[np.ndarray, np.ndarray]:
+        color = read_color(color_path)
+        raw = read_image(depth_path, cv2.IMREAD_UNCHANGED)
+        depth = depth_in_metres(raw, depth_scale, str(depth_path))
+        if invalid_raw is not None:
+            depth[raw >= invalid_raw] = 0
+        return color, depth
+
+    read.source = f"{color_path}, {depth_path}"
+    return read
+
+
+def color_only_reader(path: Path, height: int, width: int) -> FrameReader:
+    """A reader of a colour image file without depth: (colour uint8 RGB, all-zero depth (H, W))."""
+
+    def read():
+        return read_color(path), np.zeros((height, width), np.float32)
+
+    read.source = str(path)
+    return read
+
+
+def constant_reader(color: np.ndarray, depth: np.ndarray, source: str) -> FrameReader:
+    """A reader of a frame held in memory."""
+
+    def read():
+        return color, depth
+
+    read.source = source
+    return read

@@ -1,0 +1,122 @@
+"""`load_sequence`: detect a dataset folder's format and read it with that format's reader.
+
+Formats are tried in registration order; a reader module registers itself with
+:func:`register_format` (the library's own ones below). Each reader returns the folder's
+whole sequence; striding, capping and the first-frame check happen here, once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import open3d as o3d
+
+from ..camera import check_intrinsic
+from ..errors import DatasetError, InputError
+from .sequence import RGBDSequence, check_first_frame
+
+RGBD_OPTIONS = frozenset({"intrinsic", "depth_scale", "depth_trunc", "color_intrinsic"})
+
+
+@dataclasses.dataclass(frozen=True)
+class Format:
+    """A dataset layout: `detect(path)` says whether a folder has it; `read(path, image_scale=,
+    **options)` returns its sequence, taking the `options` of load_sequence it understands."""
+
+    name: str
+    layout: str
+    detect: Callable[[Path], bool]
+    read: Callable[..., RGBDSequence]
+    options: frozenset = RGBD_OPTIONS
+
+
+FORMATS: list[Format] = []
+
+
+def register_format(fmt: Format) -> None:
+    """Add a dataset layout to those load_sequence() detects (tried after the earlier ones)."""
+    FORMATS.append(fmt)
+
+
+def detect_format(path: Path) -> Format:
+    """The first registered format whose detector accepts the folder (DatasetError if none)."""
+    for fmt in FORMATS:
+        if fmt.detect(path):
+            return fmt
+    expected = ", ".join(f"{f.name} ({f.layout})" for f in FORMATS)
+    raise DatasetError(f"{path}: not a known layout. Expected {expected} folders")
+
+
+def load_sequence(
+    path,
+    intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None,
+    depth_scale: float | None = None,
+    depth_trunc: float = 0.0,
+    stride: int = 1,
+    max_frames: int | None = None,
+    image_scale: float = 1.0,
+    color_intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None,
+) -> RGBDSequence:
+    """Read a dataset folder, detecting its layout (see the README's table of formats).
+
+    intrinsic / color_intrinsic / depth_scale override what the folder says (RGB-D formats).
+    depth_trunc (m, 0 = none) drops farther depth. stride keeps every stride-th frame,
+    max_frames caps the count after striding. image_scale in (0, 1] resizes frames on load.
+    An image-only folder (e.g. LLFF) gives a sequence without depth that carries its structure
+    from motion (``sequence.sfm``).
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"path must be a folder path (str or pathlib.Path), got {type(path).__name__}")
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"dataset folder not found: {path}")
+    if not path.is_dir():
+        raise DatasetError(f"dataset path must be a folder, got a file: {path}")
+    if not isinstance(stride, int) or stride < 1:
+        raise InputError(f"stride must be an integer >= 1, got {stride!r}")
+    if max_frames is not None and max_frames < 1:
+        raise InputError(f"max_frames must be >= 1 or None, got {max_frames!r}")
+    if depth_scale is not None and not depth_scale > 0:
+        raise InputError(f"depth_scale must be > 0 (raw units per metre), got {depth_scale!r}")
+    if intrinsic is not None:
+        check_intrinsic(intrinsic)
+    fmt = detect_format(path)
+    given = {"intrinsic": intrinsic, "depth_scale": depth_scale, "color_intrinsic": color_intrinsic,
+             "depth_trunc": depth_trunc or None}
+    given = {k: v for k, v in given.items() if v is not None}
+    unused = [k for k in given if k not in fmt.options]
+    if unused:
+        raise InputError(f"{path} is {fmt.name} ({fmt.layout}): {', '.join(unused)} do not apply")
+    seq = fmt.read(path, image_scale=image_scale, **given)
+    keep = np.arange(0, len(seq), stride)[:max_frames]
+    if len(keep) < len(seq):
+        seq = seq.select(keep)
+    if seq.has_depth:
+        check_first_frame(seq)
+    return seq
+
+
+def _register_builtin_formats() -> None:
+    from .llff import POSES_FILE, is_llff, read_llff
+    from .open3d_folder import is_open3d_folder, read_open3d_folder
+    from .seven_scenes import is_seven_scenes, read_seven_scenes
+    from .tum import is_tum, read_tum
+
+    def llff(path, image_scale=1.0):
+        return read_llff(path, image_scale=image_scale)
+
+    for fmt in (
+        Format("an LLFF image folder", f"{POSES_FILE} + images_N/, no depth, camera from {POSES_FILE}", is_llff,
+               llff, frozenset()),
+        Format("TUM RGB-D", "rgb.txt + depth.txt", is_tum, read_tum),
+        Format("7-Scenes", "frame-XXXXXX.color.png/.depth.png", is_seven_scenes, read_seven_scenes),
+        Format("Open3D/Redwood", "color/ + depth/", is_open3d_folder, read_open3d_folder),
+    ):
+        register_format(fmt)
+
+
+_register_builtin_formats()

@@ -1,0 +1,65 @@
+"""7-Scenes folders: ``frame-XXXXXX.{color.png|color.jpg, depth.png, pose.txt}`` and
+``camera-intrinsics.txt``; depth scale 1000, 65535 marks missing depth."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import check_intrinsic, check_poses, pinhole
+from ..errors import DatasetError
+from .images import file_reader
+from .sequence import RGBDSequence
+
+
+def is_seven_scenes(path: Path) -> bool:
+    return any(path.glob("frame-*.depth.png"))
+
+
+def read_seven_scenes(path: Path, intrinsic=None, depth_scale: float | None = None, depth_trunc: float = 0.0,
+                      color_intrinsic=None, image_scale: float = 1.0) -> RGBDSequence:
+    """A 7-Scenes folder; its colour camera is not registered to the depth camera (see below)."""
+    depth_files = sorted(path.glob("frame-*.depth.png"))
+    readers, poses = [], []
+    scale = depth_scale or 1000.0
+    for d in depth_files:
+        stem = d.name[: -len(".depth.png")]
+        color = next((c for c in (path / f"{stem}.color.png", path / f"{stem}.color.jpg") if c.is_file()), None)
+        if color is None:
+            raise DatasetError(f"{path}: {stem}.color.png/.jpg missing for {d.name}")
+        readers.append(file_reader(color, d, scale, invalid_raw=65535))  # 7-Scenes' invalid-depth mark
+        pose_file = path / f"{stem}.pose.txt"
+        poses.append(_read_pose(pose_file) if pose_file.is_file() else None)
+    gt = np.stack(poses) if all(p is not None for p in poses) else None
+    intr_file = path / "camera-intrinsics.txt"
+    if intrinsic is None:
+        if intr_file.is_file():
+            k = read_matrix(intr_file, (3, 3))
+            intrinsic = check_intrinsic(pinhole(640, 480, k[0, 0], k[1, 1], k[0, 2], k[1, 2]), str(intr_file))
+        else:
+            intrinsic = pinhole(640, 480, 585.0, 585.0, 320.0, 240.0)
+    if color_intrinsic is None:
+        # 7-Scenes colour is not registered to depth: measured colour = 0.905 x depth image,
+        # shifted -7 px in x (shared/data/7scenes_redkitchen/SOURCE.md).
+        fx, fy = intrinsic.get_focal_length()
+        cx, cy = intrinsic.get_principal_point()
+        color_intrinsic = pinhole(intrinsic.width, intrinsic.height, fx * 0.905, fy * 0.905, cx - 7.0, cy)
+    stamps = np.array([float(re.sub(r"\D", "", d.name) or i) for i, d in enumerate(depth_files)])
+    return RGBDSequence(readers, intrinsic, stamps, gt, depth_trunc, color_intrinsic, path.name, image_scale)
+
+
+def _read_pose(path: Path) -> np.ndarray:
+    return check_poses(read_matrix(path, (4, 4))[None], 1, str(path))[0]
+
+
+def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """A whitespace-separated text matrix of the given shape (DatasetError naming the file)."""
+    try:
+        m = np.loadtxt(path, dtype=np.float64)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: not a {shape[0]}x{shape[1]} matrix of numbers ({exc})") from None
+    if m.shape != shape:
+        raise DatasetError(f"{path}: expected a {shape[0]}x{shape[1]} matrix, got shape {m.shape}")
+    return m

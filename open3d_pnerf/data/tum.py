@@ -1,0 +1,125 @@
+"""TUM RGB-D folders: ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``; depth scale 5000."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from ..camera import pinhole
+from ..errors import DatasetError
+from .images import file_reader
+from .sequence import RGBDSequence
+
+# TUM calibration of the (registered) colour camera, per Kinect. Lens distortion is ignored:
+# undistorting the fr1 colour with TUM's published coefficients made colour agree worse across
+# views of the shared fr1/xyz frames (depth warped by the mocap poses), so the depth is taken
+# to be registered to an undistorted colour image already.
+TUM_INTRINSICS = {
+    "freiburg1": (517.3, 516.5, 318.6, 255.3),
+    "freiburg2": (520.9, 521.0, 325.1, 249.7),
+    "freiburg3": (535.4, 539.2, 320.1, 247.6),
+}
+PRIMESENSE_DEFAULT = (525.0, 525.0, 319.5, 239.5)
+TUM_MAX_DT = 0.02  # seconds, as TUM's associate.py
+
+
+def is_tum(path: Path) -> bool:
+    return (path / "rgb.txt").is_file() and (path / "depth.txt").is_file()
+
+
+def read_tum(path: Path, intrinsic=None, depth_scale: float | None = None, depth_trunc: float = 0.0,
+             color_intrinsic=None, image_scale: float = 1.0) -> RGBDSequence:
+    """A TUM RGB-D folder: colour and depth associated one to one within TUM_MAX_DT, the
+    intrinsic by the folder's Kinect name, ground truth slerped at the colour timestamps."""
+    rgb_t, rgb_f = _timestamped_files(path / "rgb.txt")
+    dep_t, dep_f = _timestamped_files(path / "depth.txt")
+    pairs = associate(rgb_t, dep_t, TUM_MAX_DT)
+    if not pairs:
+        raise DatasetError(
+            f"{path}: no timestamps of rgb.txt and depth.txt within {TUM_MAX_DT} s of each other; "
+            "cannot associate colour with depth"
+        )
+    missing = [str(f) for i, j in pairs for f in (rgb_f[i], dep_f[j]) if not f.is_file()]
+    if missing:
+        raise DatasetError(
+            f"{path}: {len(missing)} image file(s) listed in rgb.txt/depth.txt do not exist: {missing[:3]}"
+        )
+    scale = depth_scale or 5000.0
+    readers = [file_reader(rgb_f[i], dep_f[j], scale) for i, j in pairs]
+    stamps = np.array([rgb_t[i] for i, _ in pairs])
+    poses = None
+    gt = path / "groundtruth.txt"
+    if gt.is_file():
+        poses = _interpolate_tum_groundtruth(gt, stamps)
+    if intrinsic is None:
+        known = [k for k in TUM_INTRINSICS if k in path.name]
+        params = TUM_INTRINSICS[known[0]] if known else PRIMESENSE_DEFAULT
+        if not known:
+            warnings.warn(f"{path}: unknown TUM camera, using the default 525/319.5/239.5 intrinsic")
+        intrinsic = pinhole(640, 480, *params)
+    return RGBDSequence(readers, intrinsic, stamps, poses, depth_trunc, color_intrinsic, path.name, image_scale)
+
+
+def read_list(path: Path) -> list[list[str]]:
+    """The whitespace-split lines of a TUM text file, without comments and blank lines."""
+    rows = []
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        rows.append(line.split())
+    if not rows:
+        raise DatasetError(f"{path} lists no entries")
+    return rows
+
+
+def _timestamped_files(path: Path) -> tuple[np.ndarray, list[Path]]:
+    rows = read_list(path)
+    try:
+        if any(len(r) < 2 for r in rows):
+            raise ValueError("a line has no filename")
+        stamps = np.array([float(r[0]) for r in rows])
+    except ValueError as exc:
+        raise DatasetError(f"{path}: expected 'timestamp filename' lines ({exc})") from None
+    return stamps, [path.parent / r[1] for r in rows]
+
+
+def associate(a: np.ndarray, b: np.ndarray, max_dt: float) -> list[tuple[int, int]]:
+    """One-to-one nearest-timestamp matches (i, j) with |a_i - b_j| < max_dt, as TUM's tool."""
+    diff = np.abs(a[:, None] - b[None, :])
+    cand = np.argwhere(diff < max_dt)
+    order = np.argsort(diff[cand[:, 0], cand[:, 1]], kind="stable")
+    used_a, used_b, pairs = set(), set(), []
+    for i, j in cand[order]:
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((int(i), int(j)))
+    return sorted(pairs)
+
+
+def _interpolate_tum_groundtruth(path: Path, stamps: np.ndarray) -> np.ndarray | None:
+    try:
+        rows = np.array([[float(x) for x in r] for r in read_list(path)])
+    except ValueError as exc:
+        raise DatasetError(f"{path}: expected 'timestamp tx ty tz qx qy qz qw' lines ({exc})") from None
+    if rows.ndim != 2 or rows.shape[1] != 8:
+        raise DatasetError(f"{path}: expected 'timestamp tx ty tz qx qy qz qw' lines")
+    if not np.isfinite(rows).all() or (np.linalg.norm(rows[:, 4:8], axis=1) < 1e-6).any():
+        raise DatasetError(f"{path}: NaN/inf values or a zero quaternion (qx qy qz qw)")
+    t = rows[:, 0]
+    if (np.diff(t) <= 0).any():
+        raise DatasetError(f"{path}: timestamps must increase from line to line")
+    inside = (stamps >= t[0]) & (stamps <= t[-1])
+    if not inside.all():
+        warnings.warn(f"{path}: ground truth does not cover every frame; gt_poses left out")
+        return None
+    rot = Slerp(t, Rotation.from_quat(rows[:, 4:8]))(stamps)
+    poses = np.tile(np.eye(4), (len(stamps), 1, 1))
+    poses[:, :3, :3] = rot.as_matrix()
+    for k in range(3):
+        poses[:, k, 3] = np.interp(stamps, t, rows[:, 1 + k])
+    return poses

@@ -1,0 +1,130 @@
+"""PNeRFModel: the field with everything that turns it into images of the training frames.
+
+The model owns the field, the samplers' settings, the loss method, and, when training, the
+training cameras, a colour gain per training frame (exposure) and a rigid correction per
+training pose. ``forward(batch)`` renders a :class:`~open3d_pnerf.batches.RayBatch` of
+training pixels as their frames recorded them; ``loss(renders, batch, weights)`` returns the
+loss terms; ``render(rays)`` renders any rays without gradient (deterministic samples).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+from torch import nn
+
+from .batches import RayBatch
+from .config import ReconstructionConfig
+from .losses import LossMethod, LossWeights, loss_method, total_loss
+from .pose_refinement import PoseCorrections
+from .rendering import BatchShare, RayRender, Rays, SamplingConfig, make_rays, render_rays
+from .rendering.exposure import ExposureGains
+
+
+class PNeRFModel(nn.Module):
+    """field: a scene field; sampling: samples per ray; loss: a name in LOSSES or a LossMethod;
+    coarse_terms: the loss also scores the coarse render (the paper's coarse + fine terms).
+
+    For training, give the training cameras: poses (N, 4, 4) camera-to-world and K (3, 3),
+    and optionally exposure (an ExposureGains of the N frames) and pose_corrections (a
+    PoseCorrections of the N frames, weighted by pose_prior_weight in the loss).
+    """
+
+    def __init__(self, field: nn.Module, sampling: SamplingConfig, loss: str | LossMethod = "pnerf", *,
+                 coarse_terms: bool = True, poses: torch.Tensor | None = None, K: torch.Tensor | None = None,
+                 exposure: ExposureGains | None = None, pose_corrections: PoseCorrections | None = None,
+                 pose_prior_weight: float = 0.0):
+        super().__init__()
+        self.field = field
+        self.sampling = sampling
+        self.loss_method = loss_method(loss)
+        self.coarse_terms = coarse_terms
+        self.exposure = exposure
+        self.pose_corrections = pose_corrections
+        self.pose_prior_weight = pose_prior_weight
+        self.register_buffer("train_poses", poses, persistent=False)
+        self.register_buffer("K", K, persistent=False)
+
+    @property
+    def device(self) -> torch.device:
+        return self.field.aabb.device
+
+    # -- training --------------------------------------------------------------------------
+    def rays(self, batch: RayBatch) -> Rays:
+        """The world rays of training pixels, from their frames' (corrected) poses, in the scene box."""
+        poses = self.train_poses[batch.frames]
+        if self.pose_corrections is not None:
+            poses = self.pose_corrections(poses, batch.frames)
+        return make_rays(poses, self.K, batch.u, batch.v, self.field.aabb)
+
+    def forward(self, batch: RayBatch, generator: torch.Generator | BatchShare | None = None) -> list[RayRender]:
+        """[fine] or [fine, coarse] renders of the batch's pixels, with each frame's exposure.
+
+        generator: the random numbers' source (a BatchShare renders rows of a larger batch
+        exactly as the whole batch would). Rays with a depth target get depth-guided samples
+        when the loss has depth terms and sampling.depth_guided is set."""
+        guide = bool(self.loss_method.terms) and self.sampling.depth_guided
+        fine, coarse = render_rays(self.field, self.rays(batch), self.sampling, batch.mean if guide else None,
+                                   batch.sigma if guide else None, generator, with_coarse=self.coarse_terms)
+        renders = [fine] + ([coarse] if coarse is not None else [])
+        if self.exposure is not None:  # the colours as each ray's frame recorded them
+            renders = [dataclasses.replace(r, color=self.exposure(r.color, batch.frames)) for r in renders]
+        return renders
+
+    def loss(self, renders: list[RayRender], batch: RayBatch, weights: LossWeights,
+             n_rays: int | None = None, n_target: int | None = None) -> dict:
+        """Loss terms of :func:`~open3d_pnerf.losses.total_loss`, plus the pose prior when poses
+        are refined. n_rays, n_target: the whole batch's counts when `batch` is one rank's share."""
+        terms = total_loss(self.loss_method, renders, batch.rgb, batch.mean, batch.sigma, weights, n_rays, n_target)
+        if self.pose_corrections is not None:  # each share of a batch adds its part of the prior
+            share = 1.0 if n_rays is None else len(batch) / n_rays
+            terms["pose_prior"] = self.pose_corrections.prior()
+            terms["loss"] = terms["loss"] + self.pose_prior_weight * terms["pose_prior"] * share
+        return terms
+
+    # -- rendering ---------------------------------------------------------------------------
+    @torch.no_grad()
+    def render(self, rays: Rays, chunk: int = 2048, keys: tuple = ("color", "depth", "depth_var", "opacity")) -> dict:
+        """Render rays in chunks without gradient (deterministic mid-bin samples).
+
+        Returns the :class:`~open3d_pnerf.rendering.RayRender` fields named by `keys`: by default
+        color (R, 3), depth (R,) expected ray distance, depth_var (R,), opacity (R,); also
+        t (R, S), edges (R, S + 1), weights (R, S) with S = n_coarse + n_fine + n_guided.
+        """
+        s = self.sampling
+        inference = SamplingConfig(s.n_coarse, s.n_fine + s.n_guided, 0)
+        outs = {k: [] for k in keys}
+        for start in range(0, len(rays), chunk):
+            fine, _ = render_rays(self.field, rays[start : start + chunk], inference, jitter=False)
+            for k in outs:
+                outs[k].append(getattr(fine, k))
+        return {k: torch.cat(v) for k, v in outs.items()}
+
+    def camera_rays(self, pose, K, u: torch.Tensor, v: torch.Tensor) -> Rays:
+        """Rays of pixels (u, v) (R,) of a camera-to-world pose (4, 4) with intrinsic matrix K
+        (3, 3), clipped to the scene box."""
+        pose = torch.as_tensor(np.asarray(pose), dtype=torch.float32, device=self.device)
+        K = torch.as_tensor(np.asarray(K), dtype=torch.float32, device=self.device)
+        return make_rays(pose, K, u, v, self.field.aabb)
+
+
+def build_model(config: ReconstructionConfig, aabb, poses: np.ndarray | None = None, K: np.ndarray | None = None,
+                covariances: np.ndarray | None = None) -> PNeRFModel:
+    """The model of a config over the scene box aabb (2, 3): the field (seeded by config.seed,
+    on config.device) and, given the training cameras (poses (N, 4, 4), K (3, 3), pose
+    covariances (N, 6, 6)), the exposure gains and pose corrections the config asks for."""
+    field = config.build_field(aabb)
+    device = field.aabb.device
+    cameras, exposure, corrections = {}, None, None
+    if poses is not None:
+        cameras = dict(poses=torch.as_tensor(np.asarray(poses), dtype=torch.float32, device=device),
+                       K=torch.as_tensor(np.asarray(K), dtype=torch.float32, device=device))
+        if config.refine_poses:
+            corrections = PoseCorrections(covariances, device)
+        if config.exposure_compensation:
+            exposure = ExposureGains(len(poses), device)
+    objective = config.objective
+    return PNeRFModel(field, config.sampling, config.loss, coarse_terms=objective.coarse_terms, exposure=exposure,
+                      pose_corrections=corrections, pose_prior_weight=objective.pose_prior_weight, **cameras)

@@ -1,0 +1,63 @@
+"""DepthTargets: per-pixel Gaussian depth targets, in RAM or in memory-mapped files."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+BYTES_PER_PIXEL = 11  # mean, sigma (float32), valid, support, filled (1 byte each)
+
+
+@dataclasses.dataclass
+class DepthTargets:
+    """Per-pixel Gaussian depth targets for the N frames of a sequence, all (N, H, W).
+
+    mean, sigma: float32 z-depth metres (0 where invalid). valid: bool. support: uint8
+    number of observations fused (own depth counts as one). filled: bool, True where the
+    frame had no own depth and the target comes from neighbours only.
+    """
+
+    mean: np.ndarray
+    sigma: np.ndarray
+    valid: np.ndarray
+    support: np.ndarray
+    filled: np.ndarray
+
+    def __len__(self) -> int:
+        return self.mean.shape[0]
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.mean.shape[1:]
+
+    def summary(self) -> dict:
+        """Fractions of valid/filled pixels and sigma percentiles (mm) over valid pixels."""
+        sig = self.sigma[self.valid]
+        pct = np.percentile(sig, [5, 50, 95]) * 1000 if sig.size else [np.nan] * 3
+        return {
+            "valid_fraction": float(self.valid.mean()),
+            "filled_fraction": float(self.filled.mean()),
+            "sigma_mm_p5_p50_p95": [round(float(p), 2) for p in pct],
+            "mean_support": float(self.support[self.valid].mean()) if sig.size else 0.0,
+        }
+
+
+def allocate(n: int, h: int, w: int, storage_dir=None) -> DepthTargets:
+    """Zeroed targets of n frames of h x w pixels: NumPy arrays, or .npy memory maps in storage_dir."""
+    if storage_dir is None:
+        make = lambda name, dtype: np.zeros((n, h, w), dtype)  # noqa: E731
+    else:
+        folder = Path(storage_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+        make = lambda name, dtype: np.lib.format.open_memmap(  # noqa: E731
+            folder / f"{name}.npy", mode="w+", dtype=dtype, shape=(n, h, w)
+        )
+    return DepthTargets(
+        make("mean", np.float32),
+        make("sigma", np.float32),
+        make("valid", bool),
+        make("support", np.uint8),
+        make("filled", bool),
+    )

@@ -1,0 +1,140 @@
+"""Open3D TSDF fusion (tensor VoxelBlockGrid, CPU or CUDA): the baseline users already have, and
+how the model's rendered depth becomes a mesh."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from tqdm.auto import tqdm
+
+from .camera import check_poses, intrinsic_matrix, pose_to_extrinsic
+from .data.sequence import RGBDSequence, check_sequence
+from .errors import InputError
+from .raycast import MeshRaycaster
+
+
+class TSDFVolume:
+    """A coloured TSDF volume (Open3D ``t.geometry.VoxelBlockGrid``).
+
+    voxel_size and sdf_trunc in metres; depth beyond depth_max (m) is ignored. Poses are
+    camera-to-world (N, 4, 4); Open3D's world-to-camera extrinsic is derived here, once.
+    Surfaces (mesh, points, renders) keep voxels whose fused weight (number of
+    observations) exceeds weight_threshold: 3.0 is Open3D's default; use 0.5 to keep
+    everything seen once.
+    """
+
+    def __init__(
+        self,
+        voxel_size: float = 0.01,
+        sdf_trunc: float = 0.04,
+        depth_max: float = 3.0,
+        block_count: int = 4_000,
+        device: str = "CPU:0",
+        weight_threshold: float = 3.0,
+    ):
+        if not (voxel_size > 0 and sdf_trunc > voxel_size and depth_max > 0):
+            raise InputError(
+                f"need voxel_size > 0, sdf_trunc > voxel_size and depth_max > 0; got "
+                f"voxel_size={voxel_size}, sdf_trunc={sdf_trunc}, depth_max={depth_max}"
+            )
+        self.voxel_size = voxel_size
+        self.depth_max = depth_max
+        self.weight_threshold = weight_threshold
+        self.trunc_multiplier = sdf_trunc / voxel_size
+        self.device = o3d.core.Device(device)
+        self.grid = o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight", "color"),
+            attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
+            attr_channels=((1), (1), (3)),
+            voxel_size=voxel_size,
+            block_resolution=16,
+            block_count=block_count,
+            device=self.device,
+        )
+        self._raycaster = None
+
+    def _tensor(self, array, dtype=o3d.core.float64):
+        return o3d.core.Tensor(np.ascontiguousarray(array), dtype, self.device)
+
+    def integrate(self, color: np.ndarray, depth: np.ndarray, K: np.ndarray, pose: np.ndarray, K_color=None):
+        """Fuse one frame: colour uint8 (H, W, 3), depth float32 metres, camera-to-world pose.
+
+        A frame without valid depth (0 < depth <= depth_max) is skipped.
+        """
+        if not ((depth > 0) & (depth <= self.depth_max)).any():
+            return
+        depth_img = o3d.t.geometry.Image(self._tensor(depth, o3d.core.float32))
+        color_img = o3d.t.geometry.Image(self._tensor(color.astype(np.float32) / 255.0, o3d.core.float32))
+        intr = self._tensor(K)
+        extr = self._tensor(pose_to_extrinsic(pose))
+        try:
+            coords = self.grid.compute_unique_block_coordinates(
+                depth_img, intr, extr, 1.0, self.depth_max, self.trunc_multiplier
+            )
+        except RuntimeError as exc:  # too few valid pixels to touch a block: nothing to fuse
+            if "No block is touched" in str(exc):
+                return
+            raise
+        # Open3D reads a voxel's depth from pixel floor(u) (pixel i spans [i, i + 1)); with pixel
+        # centres at integers the nearest pixel is floor(u + 0.5): shift the principal point by half
+        # a pixel (else oblique surfaces move by half a pixel's depth change, ~1 cm at 160x120)
+        half = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+        intr_d = self._tensor(np.asarray(K, np.float64) + half)
+        intr_c = self._tensor(np.asarray(K if K_color is None else K_color, np.float64) + half)
+        self._raycaster = None  # the cached ray-casting mesh is stale now
+        self.grid.integrate(
+            coords, depth_img, color_img, intr_d, intr_c, extr, 1.0, self.depth_max, self.trunc_multiplier
+        )
+
+    def mesh(self) -> o3d.geometry.TriangleMesh:
+        """Marching-cubes surface with vertex colours, as a legacy Open3D mesh (empty if nothing fused)."""
+        if self.grid.hashmap().size() == 0:
+            return o3d.geometry.TriangleMesh()
+        mesh = self.grid.extract_triangle_mesh(weight_threshold=self.weight_threshold).to_legacy()
+        mesh.compute_vertex_normals()
+        return mesh
+
+    def point_cloud(self) -> o3d.geometry.PointCloud:
+        """Zero-crossing points with colours, as a legacy Open3D point cloud (empty if nothing fused)."""
+        if self.grid.hashmap().size() == 0:
+            return o3d.geometry.PointCloud()
+        return self.grid.extract_point_cloud(weight_threshold=self.weight_threshold).to_legacy()
+
+    def render(self, pose: np.ndarray, K: np.ndarray, width: int, height: int) -> dict:
+        """Ray-cast the fused surface from a camera-to-world pose (pixel centres at integers).
+
+        Casts against the extracted mesh (:class:`~open3d_pnerf.raycast.MeshRaycaster`; the
+        VoxelBlockGrid's own ray_cast hangs on its second call in open3d 0.19 on CPU) and
+        interpolates vertex colours. Returns color (H, W, 3) float32 in [0, 1], depth (H, W) float32 z metres
+        (0 = miss) and hit (H, W) bool.
+        """
+        if self._raycaster is None:
+            self._raycaster = MeshRaycaster(self.mesh())
+        return self._raycaster.render(pose, K, width, height, self.depth_max)
+
+
+def tsdf_fusion(
+    sequence: RGBDSequence,
+    poses: np.ndarray,
+    voxel_size: float = 0.01,
+    sdf_trunc: float = 0.04,
+    depth_max: float = 3.0,
+    device: str = "CPU:0",
+    return_volume: bool = False,
+    progress: bool = True,
+    weight_threshold: float = 3.0,
+):
+    """Open3D TSDF fusion of every frame of `sequence` at camera-to-world `poses` (N, 4, 4).
+
+    Returns the coloured ``o3d.geometry.TriangleMesh``; with return_volume=True returns the
+    :class:`TSDFVolume` instead (for ``.point_cloud()`` and ``.render(pose, K, w, h)``).
+    weight_threshold: surfaces keep voxels observed more often than this (see TSDFVolume).
+    """
+    poses = check_poses(poses, len(check_sequence(sequence, what="tsdf_fusion(): sequence", needs_depth=True)), "poses")
+    volume = TSDFVolume(voxel_size, sdf_trunc, depth_max, device=device, weight_threshold=weight_threshold)
+    K = sequence.K
+    K_color = intrinsic_matrix(sequence.color_intrinsic)
+    for i in tqdm(range(len(sequence)), desc="TSDF fusion", disable=not progress, leave=False):
+        frame = sequence[i]
+        volume.integrate(frame.color, frame.depth, K, poses[i], K_color)
+    return volume if return_volume else volume.mesh()
