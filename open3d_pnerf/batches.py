@@ -38,64 +38,63 @@ class RayBatcher:
     """Draws random training pixels from a bounded cache of decoded frames.
 
     sequence: the training frames at training resolution; targets: their DepthTargets (same
-    resolution) or None. At most `cache_frames` frames are decoded at a time; with more
-    frames the cache rotates one frame every `refresh_every` steps, in a seeded order, so
-    memory stays bounded on long sequences.
+    resolution) or None. At most `cache_frames` frames are decoded at a time, into slots of
+    preallocated tensors; with more frames the cache rotates one frame every `refresh_every`
+    steps, in a seeded order, so memory stays bounded on long sequences.
     """
 
     def __init__(self, sequence: RGBDSequence, targets: DepthTargets | None, device, seed: int,
                  cache_frames: int = 64, refresh_every: int = 4):
         self.sequence, self.targets, self.device = sequence, targets, device
         self.height, self.width = sequence.image_size
-        self.norms = torch.as_tensor(ray_norms(sequence.K, self.height, self.width), device=device)
+        self.norms = torch.as_tensor(ray_norms(sequence.K, self.height, self.width), device=device).view(-1)
         self.capacity = min(cache_frames, len(sequence))
         self.refresh_every = refresh_every
         self.order_rng = np.random.default_rng(seed)
         self.queue: list[int] = []
-        self.cache: OrderedDict[int, tuple] = OrderedDict()
+        self.cache: OrderedDict[int, int] = OrderedDict()  # frame -> slot, oldest first
+        pixels = self.height * self.width
+        self.colors = torch.empty(self.capacity, pixels, 3, device=device)
+        self.means = torch.empty(self.capacity, pixels, device=device) if targets is not None else None
+        self.sigmas = torch.empty(self.capacity, pixels, device=device) if targets is not None else None
         self.draws = 0
         while len(self.cache) < self.capacity:
-            self._load(self._next_frame())
+            self._load(self._next_frame(), len(self.cache))
 
     def _next_frame(self) -> int:
         if not self.queue:
             self.queue = [int(i) for i in self.order_rng.permutation(len(self.sequence)) if i not in self.cache]
         return int(self.queue.pop())
 
-    def _load(self, i: int) -> None:
+    def _load(self, i: int, slot: int) -> None:
+        """Decode frame i (colour in [0, 1]; targets in ray-distance metres, NaN = none) into a slot."""
         frame = self.sequence[i]
-        color = torch.as_tensor(self.sequence.color_on_depth_grid(frame.color), device=self.device).float().div_(255).view(-1, 3)
+        self.colors[slot] = torch.as_tensor(self.sequence.color_on_depth_grid(frame.color), device=self.device
+                                            ).float().div_(255).view(-1, 3)
         if self.targets is not None:
             valid = torch.as_tensor(np.asarray(self.targets.valid[i]), device=self.device).view(-1)
-            norms = self.norms.view(-1)
-            mean = torch.as_tensor(np.asarray(self.targets.mean[i]), device=self.device).view(-1) * norms
-            sigma = torch.as_tensor(np.asarray(self.targets.sigma[i]), device=self.device).view(-1) * norms
-            mean = torch.where(valid, mean, torch.full_like(mean, float("nan")))
-        else:
-            mean = sigma = None
-        self.cache[i] = (color, mean, sigma)
+            mean = torch.as_tensor(np.asarray(self.targets.mean[i]), device=self.device).view(-1) * self.norms
+            self.means[slot] = torch.where(valid, mean, torch.full_like(mean, float("nan")))
+            self.sigmas[slot] = torch.as_tensor(np.asarray(self.targets.sigma[i]), device=self.device).view(-1) * self.norms
+        self.cache[i] = slot
 
     def sample(self, n: int, generator: torch.Generator) -> RayBatch:
         """n random pixels of the cached frames, with their colours, depth targets and frames."""
         self.draws += 1
         if len(self.cache) < len(self.sequence) and self.draws % self.refresh_every == 0:
-            self.cache.popitem(last=False)
-            self._load(self._next_frame())
+            _, slot = self.cache.popitem(last=False)
+            self._load(self._next_frame(), slot)
         ids = list(self.cache)
         which = torch.randint(len(ids), (n,), generator=generator).to(self.device)  # drawn on the CPU generator
         pix = torch.randint(self.height * self.width, (n,), generator=generator).to(self.device)
         frames = torch.tensor(ids, device=self.device)[which]
-        rgb = torch.empty(n, 3, device=self.device)
-        mean = torch.full((n,), float("nan"), device=self.device)
-        sigma = torch.full((n,), float("nan"), device=self.device)
-        for slot, i in enumerate(ids):
-            sel = which == slot
-            if not sel.any():
-                continue
-            color, m, s = self.cache[i]
-            rgb[sel] = color[pix[sel]]
-            if m is not None:
-                mean[sel], sigma[sel] = m[pix[sel]], s[pix[sel]]
+        slots = torch.tensor(list(self.cache.values()), device=self.device)[which]
+        rgb = self.colors[slots, pix]
+        if self.means is None:
+            mean = torch.full((n,), float("nan"), device=self.device)
+            sigma = mean.clone()
+        else:
+            mean, sigma = self.means[slots, pix], self.sigmas[slots, pix]
         u = (pix % self.width).float().to(self.device)
         v = (pix // self.width).float().to(self.device)
         return RayBatch(u, v, frames, rgb, mean, sigma)
@@ -107,8 +106,8 @@ class RayBatcher:
 
     def restore(self, state: dict) -> None:
         self.cache.clear()
-        for i in state["cache"]:
-            self._load(int(i))
+        for slot, i in enumerate(state["cache"]):
+            self._load(int(i), slot)
         self.queue = [int(i) for i in state["queue"]]
         self.draws = int(state["draws"])
         self.order_rng.bit_generator.state = state["order_rng"]

@@ -26,10 +26,10 @@ import torch
 from .distributed import BACKENDS
 from .errors import ConfigError
 from .fields import GridField, HashGridField, VanillaNeRFField
+from .fields.encodings import BACKENDS as HASHGRID_BACKENDS
 from .losses import LOSSES, LossWeights
 from .rendering.volume import SamplingConfig
 from .targets.noise import SensorNoise
-from .tracking.tracker import DEFAULT_POINT_NOISE_M
 
 Check = tuple[str, Callable[[Any], bool], str]  # field name, predicate, what was expected
 
@@ -59,14 +59,19 @@ class HashGridConfig:
     """log2 of the hash table size per level (memory: levels * 2^size * features floats)."""
     max_resolution: int = 2048
     """Finest hash-grid resolution across the scene box."""
+    backend: str = "auto"
+    """"auto": the fused CPU kernel (open3d_pnerf.fields.native) where it can be built, else the
+    pure-PyTorch path; "kernel" insists on the kernel; "torch": the pure-PyTorch path (also on GPUs)."""
 
     def checks(self) -> list[Check]:
         return [("levels", _count, "an int >= 1"), ("features", _count, "an int >= 1"),
                 ("log2_table_size", lambda v: _count(v, 4) and v <= 26, "an int in [4, 26]"),
-                ("max_resolution", lambda v: _count(v, 16), "an int >= 16")]
+                ("max_resolution", lambda v: _count(v, 16), "an int >= 16"),
+                ("backend", lambda v: v in HASHGRID_BACKENDS, f"one of {HASHGRID_BACKENDS}")]
 
-    def build(self, aabb) -> HashGridField:
-        return HashGridField(aabb, self.levels, self.features, self.log2_table_size, self.max_resolution)
+    def build(self, aabb, bf16: bool = False) -> HashGridField:
+        return HashGridField(aabb, self.levels, self.features, self.log2_table_size, self.max_resolution,
+                             self.backend, bf16=bf16)
 
 
 @dataclasses.dataclass
@@ -82,8 +87,8 @@ class GridConfig:
         return [("resolutions", lambda v: isinstance(v, tuple) and len(v) >= 1 and all(_count(r, 2) for r in v),
                  "a non-empty tuple of ints >= 2"), ("features", _count, "an int >= 1")]
 
-    def build(self, aabb) -> GridField:
-        return GridField(aabb, resolutions=self.resolutions, features=self.features)
+    def build(self, aabb, bf16: bool = False) -> GridField:
+        return GridField(aabb, resolutions=self.resolutions, features=self.features, bf16=bf16)
 
 
 @dataclasses.dataclass
@@ -98,8 +103,8 @@ class VanillaConfig:
     def checks(self) -> list[Check]:
         return [("width", _count, "an int >= 1"), ("depth", lambda v: _count(v, 5), "an int >= 5")]
 
-    def build(self, aabb) -> VanillaNeRFField:
-        return VanillaNeRFField(aabb, width=self.width, depth=self.depth)
+    def build(self, aabb, bf16: bool = False) -> VanillaNeRFField:
+        return VanillaNeRFField(aabb, width=self.width, depth=self.depth, bf16=bf16)
 
 
 FIELD_CONFIGS = {"hashgrid": HashGridConfig, "grid": GridConfig, "vanilla": VanillaConfig}
@@ -176,12 +181,15 @@ class TargetsConfig:
 class TrackingConfig:
     """How poses are estimated when none are given (see open3d_pnerf.track)."""
 
-    covariance_scale: float = DEFAULT_POINT_NOISE_M
-    """Scale of the pose-graph covariances (track(point_noise_m=...): the effective noise of one
-    odometry correspondence, see tracking.DEFAULT_POINT_NOISE_M)."""
+    loop_closure: bool = True
+    """Register keyframes that see the same place and optimise the pose graph."""
+    point_noise_m: float | None = None
+    """None: each registration's covariance from its own residuals. A number: the previous model,
+    Open3D's information scaled by this per-correspondence noise (m; deprecated)."""
 
     def checks(self) -> list[Check]:
-        return [("covariance_scale", lambda v: _number(v) and v > 0, "a number > 0")]
+        return [("loop_closure", _flag, "True or False"),
+                ("point_noise_m", lambda v: v is None or (_number(v) and v > 0), "None or a number > 0 (metres)")]
 
 
 @dataclasses.dataclass
@@ -227,11 +235,16 @@ class RuntimeConfig:
     dist_timeout_s: float = 600.0
     """Seconds any rank waits in a collective before raising DistributedError: a dead or hung
     rank gives an error, not a hang. Must exceed the longest gap between ranks."""
+    bf16_mlp: bool = True
+    """Run the fields' MLP matrix products in bfloat16 (autocast; parameters, encodings, colours
+    and densities stay float32): about twice as fast MLPs on CPUs with bf16 instructions, and no
+    loss of held-out quality at equal steps (benchmarks/bench_speed.py). False: all float32."""
 
     def checks(self) -> list[Check]:
         return [("eval_every", _count, "an int >= 1"), ("checkpoint_every", _count, "an int >= 1"),
                 ("cache_frames", _count, "an int >= 1"), ("dist_backend", lambda v: v in BACKENDS, f"one of {BACKENDS}"),
-                ("dist_timeout_s", lambda v: _number(v) and v > 0, "a number > 0 (seconds)")]
+                ("dist_timeout_s", lambda v: _number(v) and v > 0, "a number > 0 (seconds)"),
+                ("bf16_mlp", _flag, "True or False")]
 
 
 SUB_CONFIGS = {"hashgrid": HashGridConfig, "grid": GridConfig, "vanilla": VanillaConfig, "sampling": SamplingConfig,
@@ -252,7 +265,7 @@ LEGACY_NAMES = {
     "hash_max_resolution": "hashgrid.max_resolution", "eval_every": "runtime.eval_every",
     "checkpoint_every": "runtime.checkpoint_every", "cache_frames": "runtime.cache_frames",
     "dist_backend": "runtime.dist_backend", "dist_timeout_s": "runtime.dist_timeout_s",
-    "point_noise_m": "tracking.covariance_scale", "depth_sigma_relative": "targets.depth_sigma_relative",
+    "point_noise_m": "tracking.point_noise_m", "depth_sigma_relative": "targets.depth_sigma_relative",
     "calibrate_depth_sigma": "export.calibrate_depth_sigma", "export_scale": "export.scale",
     "export_max_views": "export.max_views", "mesh_voxel_size": "export.mesh_voxel_size",
     "max_point_std": "export.max_point_std", "min_opacity": "export.min_opacity",
@@ -385,7 +398,8 @@ class ReconstructionConfig:
         """The chosen field over the scene box aabb (2, 3) metres, on `device`, initialised from `seed`."""
         torch.manual_seed(self.seed)
         try:
-            return self.field_config.build(torch.as_tensor(aabb)).to(torch.device(self.device))
+            field = self.field_config.build(torch.as_tensor(aabb), bf16=self.runtime.bf16_mlp)
+            return field.to(torch.device(self.device))
         except (RuntimeError, AssertionError) as exc:
             raise ConfigError(f"config field device={self.device!r} is not usable here ({exc})") from None
 

@@ -14,12 +14,13 @@ import dataclasses
 import numpy as np
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from .batches import RayBatch
 from .config import ReconstructionConfig
 from .losses import LossMethod, LossWeights, loss_method, total_loss
 from .pose_refinement import PoseCorrections
-from .rendering import BatchShare, RayRender, Rays, SamplingConfig, make_rays, render_rays
+from .rendering import BatchShare, RayRender, Rays, SamplingConfig, make_rays, render_rays, render_rays_inference
 from .rendering.exposure import ExposureGains
 
 
@@ -66,7 +67,9 @@ class PNeRFModel(nn.Module):
         exactly as the whole batch would). Rays with a depth target get depth-guided samples
         when the loss has depth terms and sampling.depth_guided is set."""
         guide = bool(self.loss_method.terms) and self.sampling.depth_guided
-        fine, coarse = render_rays(self.field, self.rays(batch), self.sampling, batch.mean if guide else None,
+        with record_function("pnerf.rays"):
+            rays = self.rays(batch)
+        fine, coarse = render_rays(self.field, rays, self.sampling, batch.mean if guide else None,
                                    batch.sigma if guide else None, generator, with_coarse=self.coarse_terms)
         renders = [fine] + ([coarse] if coarse is not None else [])
         if self.exposure is not None:  # the colours as each ray's frame recorded them
@@ -87,26 +90,25 @@ class PNeRFModel(nn.Module):
     # -- rendering ---------------------------------------------------------------------------
     @torch.no_grad()
     def render(self, rays: Rays, chunk: int = 2048, keys: tuple = ("color", "depth", "depth_var", "opacity")) -> dict:
-        """Render rays in chunks without gradient (deterministic mid-bin samples).
+        """Render rays in chunks without gradient (deterministic mid-bin samples; see
+        :func:`~open3d_pnerf.rendering.volume.render_rays_inference`).
 
         Returns the :class:`~open3d_pnerf.rendering.RayRender` fields named by `keys`: by default
         color (R, 3), depth (R,) expected ray distance, depth_var (R,), opacity (R,); also
         t (R, S), edges (R, S + 1), weights (R, S) with S = n_coarse + n_fine + n_guided.
         """
-        s = self.sampling
-        inference = SamplingConfig(s.n_coarse, s.n_fine + s.n_guided, 0)
         outs = {k: [] for k in keys}
         for start in range(0, len(rays), chunk):
-            fine, _ = render_rays(self.field, rays[start : start + chunk], inference, jitter=False)
+            render = render_rays_inference(self.field, rays[start : start + chunk], self.sampling)
             for k in outs:
-                outs[k].append(getattr(fine, k))
+                outs[k].append(getattr(render, k))
         return {k: torch.cat(v) for k, v in outs.items()}
 
     def camera_rays(self, pose, K, u: torch.Tensor, v: torch.Tensor) -> Rays:
         """Rays of pixels (u, v) (R,) of a camera-to-world pose (4, 4) with intrinsic matrix K
         (3, 3), clipped to the scene box."""
-        pose = torch.as_tensor(np.asarray(pose), dtype=torch.float32, device=self.device)
-        K = torch.as_tensor(np.asarray(K), dtype=torch.float32, device=self.device)
+        pose = torch.as_tensor(np.array(pose, np.float32), device=self.device)
+        K = torch.as_tensor(np.array(K, np.float32), device=self.device)
         return make_rays(pose, K, u, v, self.field.aabb)
 
 

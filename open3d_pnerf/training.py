@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import torch
+from torch.profiler import record_function
 from tqdm.auto import tqdm
 
 from ._files import atomic_write
@@ -89,7 +90,8 @@ class Trainer:
     # -- one step ------------------------------------------------------------------------
     def train_step(self) -> dict:
         """One optimiser step on `rays_per_batch` rays: {"loss": ..., "psnr": ...} of the whole batch."""
-        batch = self.batcher.sample(self.config.optimizer.rays_per_batch, self.generator)
+        with record_function("pnerf.batch"):
+            batch = self.batcher.sample(self.config.optimizer.rays_per_batch, self.generator)
         noise, whole = self.generator, {}
         if self.dist.enabled:  # every rank drew the same batch; render this rank's rows with the batch's noise
             rows = self.dist.share(len(batch))
@@ -97,9 +99,11 @@ class Trainer:
             noise = BatchShare(self.generator, len(batch), rows.start, rows.stop)
             batch = batch[rows]
         renders = self.model(batch, noise)
-        loss = self.model.loss(renders, batch, self.loss_weights(), **whole)["loss"]
+        with record_function("pnerf.loss"):
+            loss = self.model.loss(renders, batch, self.loss_weights(), **whole)["loss"]
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        with record_function("pnerf.backward"):
+            loss.backward()
         fine = renders[0]
         loss, samples = loss.detach(), fine.t.numel()
         mse = ((fine.color.detach() - batch.rgb) ** 2).mean()
@@ -112,7 +116,8 @@ class Trainer:
                    and self.checkpoint_path.exists() else "No checkpoint was written.")
                 + " Try a lower lr."
             )
-        self.optimizer.step()
+        with record_function("pnerf.optimizer"):
+            self.optimizer.step()
         self.samples_seen += samples
         return {"loss": float(loss), "psnr": float(mse_to_psnr(mse))}
 

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -56,7 +59,8 @@ def test_field_shapes_ranges_and_zero_density_outside_the_box(name):
         sigma, rgb = field(inside, d)
         sigma_out, rgb_out = field(outside, d)
         dens = field.density(inside)
-        sigma_none, rgb_none = field(inside, None)
+        geometry, features = field.geometry(inside)
+        rgb_split = field.color(features, d)
     assert sigma.shape == (64,) and rgb.shape == (64, 3)
     assert torch.isfinite(sigma).all() and (sigma >= 0).all()
     assert (rgb >= 0).all() and (rgb <= 1).all()
@@ -64,8 +68,8 @@ def test_field_shapes_ranges_and_zero_density_outside_the_box(name):
     assert (sigma_out == 0).all()
     assert (rgb_out >= 0).all() and (rgb_out <= 1).all()
     torch.testing.assert_close(dens, sigma)
-    assert rgb_none is None
-    torch.testing.assert_close(sigma_none, sigma)
+    torch.testing.assert_close(geometry, sigma)  # forward is geometry then colour
+    torch.testing.assert_close(rgb_split, rgb)
 
 
 @pytest.mark.parametrize("name", sorted(FIELDS))
@@ -155,9 +159,14 @@ def load_level_tables(enc: HashGridEncoding, tables) -> None:
             enc.table.copy_(torch.cat(tables[enc.n_dense:]))
 
 
-def test_hashgrid_matches_the_plain_instant_ngp_encoding_with_dense_and_hashed_levels():
+PATHS = ["torch", "kernel"]  # HashGridEncoding's pure-PyTorch path and the fused CPU kernel
+
+
+@pytest.mark.parametrize("backend", PATHS)
+def test_hashgrid_matches_the_plain_instant_ngp_encoding_with_dense_and_hashed_levels(backend):
     torch.manual_seed(0)
-    enc = HashGridEncoding(levels=5, features=2, log2_table_size=10, base_resolution=4, max_resolution=64)
+    enc = HashGridEncoding(levels=5, features=2, log2_table_size=10, base_resolution=4, max_resolution=64,
+                           backend=backend)
     res = enc.resolutions
     assert enc.n_dense == 2 and enc.table.shape == (3 * 1024, 2)  # 4, 8 dense (<= 1024 vertices); 16.. hashed
     tables = [torch.randn(1024, 2) for _ in res]
@@ -168,28 +177,106 @@ def test_hashgrid_matches_the_plain_instant_ngp_encoding_with_dense_and_hashed_l
         torch.testing.assert_close(enc(x), reference_hash_encoding(x, res, tables, 1024), atol=1e-5, rtol=1e-5)
 
 
-def test_hashgrid_table_gradient_matches_the_plain_encoding():
+@pytest.mark.parametrize("backend", PATHS)
+def test_hashgrid_table_and_position_gradients_match_the_plain_encoding(backend):
+    """The gradients of every level's parameters, and of the positions (what pose refinement
+    needs; the hashed levels gave none before)."""
     torch.manual_seed(1)
-    enc = HashGridEncoding(levels=3, features=3, log2_table_size=8, base_resolution=4, max_resolution=32)
+    enc = HashGridEncoding(levels=3, features=3, log2_table_size=8, base_resolution=4, max_resolution=32,
+                           backend=backend)
     res = enc.resolutions
     tables = [torch.randn(256, 3) for _ in res]
     load_level_tables(enc, tables)
-    x, g = torch.rand(200, 3), torch.randn(200, 9)
+    x, g = torch.rand(200, 3).requires_grad_(True), torch.randn(200, 9)
     (enc(x) * g).sum().backward()
     ref = [t.clone().requires_grad_(True) for t in tables]
-    (reference_hash_encoding(x, res, ref, 256) * g).sum().backward()
+    x_ref = x.detach().clone().requires_grad_(True)
+    (reference_hash_encoding(x_ref, res, ref, 256) * g).sum().backward()
     hashed = enc.n_dense
     torch.testing.assert_close(enc.table.grad, torch.cat([t.grad for t in ref[hashed:]]), atol=1e-5, rtol=1e-5)
+    n = res[0] + 1  # the dense level's volume gradient, in the reference's row order
+    torch.testing.assert_close(enc.dense.grids[0].grad[0].reshape(3, -1).T, ref[0].grad[: n**3], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(x.grad, x_ref.grad, atol=1e-4, rtol=1e-4)
+    assert x.grad.abs().max() > 1.0  # the hashed levels (res 11, 32) dominate it
 
 
-def test_hashed_trilinear_gradcheck():
+def test_the_kernel_agrees_with_the_pure_pytorch_path_on_the_default_grid_and_training_step_sizes():
+    torch.manual_seed(2)
+    paths = [HashGridEncoding(backend=b) for b in PATHS]  # 8 levels 16..2048, 2^19 rows
+    with torch.no_grad():
+        for p in paths[0].parameters():
+            p.uniform_(-1, 1)
+    paths[1].load_state_dict(paths[0].state_dict())
+    x, g = torch.rand(20_000, 3), torch.randn(20_000, 16)
+    xs = [x.clone().requires_grad_(True) for _ in PATHS]
+    outs = [enc(xi) for enc, xi in zip(paths, xs)]
+    torch.testing.assert_close(outs[1], outs[0], atol=1e-5, rtol=1e-5)
+    for out in outs:
+        (out * g).sum().backward()
+    for (name, a), b in zip(paths[0].named_parameters(), paths[1].parameters()):
+        torch.testing.assert_close(b.grad, a.grad, atol=1e-5, rtol=1e-5, msg=name)
+    torch.testing.assert_close(xs[1].grad, xs[0].grad, atol=1e-2, rtol=1e-4)  # gradients of order 1e4
+
+
+def test_the_kernel_accumulates_into_existing_gradients_and_keeps_gradients_someone_holds():
+    enc = HashGridEncoding(levels=4, log2_table_size=10, base_resolution=4, max_resolution=64, backend="kernel")
+    x, g = torch.rand(100, 3), torch.randn(100, 8)
+    (enc(x) * g).sum().backward()
+    first = enc.table.grad.clone()
+    (enc(x) * g).sum().backward()  # no zero_grad: gradients add up, as autograd's do
+    torch.testing.assert_close(enc.table.grad, 2 * first)
+    held = enc.table.grad
+    enc.zero_grad(set_to_none=True)
+    (enc(x) * g).sum().backward()
+    torch.testing.assert_close(held, 2 * first)  # a gradient someone still holds is not overwritten
+    torch.testing.assert_close(enc.table.grad, first)
+
+
+def test_the_kernel_gives_autograd_grad_its_gradients_and_leaves_dot_grad_alone():
+    # autograd.grad (gradient checks, distributed shares) never accumulates into .grad, and
+    # a parameter with a hook must see its gradient: the kernel then hands it to autograd
+    enc = HashGridEncoding(levels=4, log2_table_size=10, base_resolution=4, max_resolution=64, backend="kernel")
+    x, g = torch.rand(100, 3), torch.randn(100, 8)
+    (enc(x) * g).sum().backward()
+    expected = enc.table.grad.clone()
+    enc.zero_grad(set_to_none=True)
+    (grad,) = torch.autograd.grad((enc(x) * g).sum(), [enc.table])
+    torch.testing.assert_close(grad, expected)
+    assert enc.table.grad is None
+    seen = []
+    enc.table.register_hook(lambda gradient: seen.append(gradient.clone()))
+    (enc(x) * g).sum().backward()
+    torch.testing.assert_close(seen[0], expected)
+    torch.testing.assert_close(enc.table.grad, expected)
+
+
+def test_without_a_compiler_the_hash_grid_falls_back_to_pure_pytorch_with_one_warning(tmp_path):
+    """A machine without g++ (a fresh cache, no compiler on PATH) trains on the pure-PyTorch path."""
+    script = (
+        "import warnings, torch\n"
+        "from open3d_pnerf.fields import HashGridEncoding, native\n"
+        "with warnings.catch_warnings(record=True) as caught:\n"
+        "    warnings.simplefilter('always')\n"
+        "    enc = HashGridEncoding(levels=2, log2_table_size=8, base_resolution=4, max_resolution=16)\n"
+        "    x = torch.rand(10, 3)\n"
+        "    assert not enc.uses_kernel(x) and enc(x).shape == (10, 4)\n"
+        "    enc(x)\n"
+        "print(len([w for w in caught if 'no C++ compiler' in str(w.message)]))\n"
+    )
+    env = {**os.environ, "PATH": str(tmp_path), "XDG_CACHE_HOME": str(tmp_path), "CXX": ""}
+    run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "1"  # one line says so, once
+
+
+def test_hashed_trilinear_gradcheck_of_the_table_and_the_weights():
     from open3d_pnerf.fields.encodings import _HashedTrilinear
 
     g = torch.Generator().manual_seed(0)
     table = torch.randn(40, 2, dtype=torch.float64, generator=g, requires_grad=True)
     rows = torch.randint(0, 40, (6, 2, 8), generator=g)  # repeated rows accumulate
-    weights = torch.rand(6, 2, 8, dtype=torch.float64, generator=g)
-    assert torch.autograd.gradcheck(lambda t: _HashedTrilinear.apply(t, rows, weights), (table,))
+    weights = torch.rand(6, 2, 8, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t, w: _HashedTrilinear.apply(t, rows, w), (table, weights))
 
 
 def test_hashgrid_dense_level_vertices_read_their_own_volume_entries():

@@ -290,22 +290,26 @@ def test_composite_colour_is_the_weighted_sum():
 
 # -- render_rays on an analytic field ------------------------------------------------------------
 class SlabField:
-    """Density `value` for world z in [z0, z0 + thickness], zero elsewhere; constant colour."""
+    """Density `value` for world z in [z0, z0 + thickness], zero elsewhere; constant colour.
+    Records the number of points of every geometry evaluation."""
 
     def __init__(self, z0=1.5, thickness=0.01, value=1e4, color=(0.2, 0.5, 0.8)):
         self.z0, self.thickness, self.value = z0, thickness, value
-        self.color = torch.tensor(color)
+        self.rgb = torch.tensor(color)
         self.calls = []
 
     def density(self, x):
         z = x[:, 2]
         return torch.where((z >= self.z0) & (z <= self.z0 + self.thickness), self.value, 0.0)
 
-    def __call__(self, x, d):
+    def geometry(self, x):
         self.calls.append(x.shape[0])
-        assert d is not None and d.shape == x.shape
-        torch.testing.assert_close(d.norm(dim=-1), torch.ones(x.shape[0]))  # unit view directions
-        return self.density(x), self.color.expand(x.shape[0], 3)
+        return self.density(x), torch.zeros(x.shape[0], 1)
+
+    def color(self, features, d):
+        assert d.shape == (features.shape[0], 3)
+        torch.testing.assert_close(d.norm(dim=-1), torch.ones(d.shape[0]))  # unit view directions
+        return self.rgb.expand(d.shape[0], 3)
 
 
 class SmoothField:
@@ -314,8 +318,11 @@ class SmoothField:
     def density(self, x):
         return 2.0 + torch.sin(3 * x[:, 2]) + x[:, 0] ** 2
 
-    def __call__(self, x, d):
-        return self.density(x), torch.sigmoid(x)
+    def geometry(self, x):
+        return self.density(x), x  # the point itself as the feature colour() sees
+
+    def color(self, features, d):
+        return torch.sigmoid(features)
 
 
 def camera_rays(n_side: int = 6, aabb=((-1.0, -1.0, 0.5), (1.0, 1.0, 1.5001))):
@@ -347,14 +354,15 @@ def test_render_rays_finds_an_opaque_slab(with_targets):
     fine, coarse = render_rays(field, rays, sampling, mean, sigma, g, with_coarse=True)
     assert (z_of(rays, fine.depth) - 1.2).abs().max() < 0.01
     torch.testing.assert_close(fine.opacity, torch.ones(len(rays)), atol=1e-4, rtol=0)
-    torch.testing.assert_close(fine.color, field.color.expand(len(rays), 3), atol=1e-4, rtol=0)
+    torch.testing.assert_close(fine.color, field.rgb.expand(len(rays), 3), atol=1e-4, rtol=0)
     assert (fine.depth_var.sqrt() * rays.directions[:, 2] < 0.01).all()  # z spread under 1 cm
     n_total = sampling.n_coarse + sampling.n_fine + sampling.n_guided
     assert fine.t.shape == (len(rays), n_total) and fine.edges.shape == (len(rays), n_total + 1)
     assert coarse.t.shape == (len(rays), sampling.n_coarse)
     assert coarse.weights.shape == (len(rays), sampling.n_coarse)
     assert (z_of(rays, coarse.depth) - 1.2).abs().max() < 0.02
-    assert field.calls == [len(rays) * n_total]  # one evaluation with gradient
+    # the geometry of every sample is evaluated once: the coarse ones, then the others
+    assert field.calls == [len(rays) * sampling.n_coarse, len(rays) * (n_total - sampling.n_coarse)]
     if with_targets:
         has = torch.isfinite(mean)
         inside = (fine.t - mean[:, None]).abs() <= 3 * sigma[:, None] + 1e-6
@@ -395,12 +403,12 @@ def test_render_rays_is_deterministic_without_jitter_and_differentiable():
     lin = torch.nn.Linear(3, 4)
 
     class Tiny:
-        def density(self, x):
-            return torch.nn.functional.softplus(lin(x)[:, 0])
-
-        def __call__(self, x, d):
+        def geometry(self, x):
             h = lin(x)
-            return torch.nn.functional.softplus(h[:, 0]), torch.sigmoid(h[:, 1:])
+            return torch.nn.functional.softplus(h[:, 0]), h[:, 1:]
+
+        def color(self, features, d):
+            return torch.sigmoid(features)
 
     rays = camera_rays(4)
     s = SamplingConfig(8, 8, 0)

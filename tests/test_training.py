@@ -140,7 +140,7 @@ def test_names_from_before_the_sub_configs_still_work_with_a_warning():
     with pytest.warns(DeprecationWarning):  # a config saved in the old flat form loads
         old = ReconstructionConfig.from_dict({"loss": "dsnerf", "grid_resolutions": [8, 16], "point_noise_m": 1.5,
                                               "gains": {"color": 1.0, "density": 0.3, "depth": 0.5, "dsnerf": 0.05}})
-    assert old.grid.resolutions == (8, 16) and old.tracking.covariance_scale == 1.5 and old.loss == "dsnerf"
+    assert old.grid.resolutions == (8, 16) and old.tracking.point_noise_m == 1.5 and old.loss == "dsnerf"
     with pytest.warns(DeprecationWarning, match="LossGains is deprecated: use LossWeights") as caught:
         from open3d_pnerf import LossGains
     assert LossGains is LossWeights and caught[0].filename == __file__

@@ -7,6 +7,9 @@ import math
 import torch
 from torch import nn
 
+from . import native
+
+BACKENDS = ("auto", "kernel", "torch")
 # Spatial-hash primes of Instant-NGP (Mueller et al. 2022); the first is 1 for coherence.
 _PRIMES = (1, 2654435761, 805459861)
 
@@ -33,9 +36,12 @@ class HashGridEncoding(nn.Module):
         log2_table_size: int = 19,
         base_resolution: int = 16,
         max_resolution: int = 2048,
+        backend: str = "auto",
     ):
         super().__init__()
-        self.levels, self.features = levels, features
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        self.levels, self.features, self.backend = levels, features, backend
         self.table_size = 2**log2_table_size
         growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(levels - 1, 1))
         self.resolutions = [int(math.floor(base_resolution * growth**level)) for level in range(levels)]
@@ -49,13 +55,30 @@ class HashGridEncoding(nn.Module):
             self.table = nn.Parameter(torch.empty(len(hashed) * self.table_size, features).uniform_(-1e-4, 1e-4))
         else:
             self.register_parameter("table", None)
+        self._kernel_spec = (torch.tensor(self.resolutions, dtype=torch.int32),
+                             torch.tensor([i < self.n_dense for i in range(levels)], dtype=torch.int32),
+                             self.table_size, features)
 
     @property
     def out_dim(self) -> int:
         return self.levels * self.features
 
+    def uses_kernel(self, x: torch.Tensor) -> bool:
+        """Whether forward(x) runs the fused CPU kernel (:mod:`~open3d_pnerf.fields.native`): backend
+        "kernel", or "auto" where it is available; float32 on the CPU either way."""
+        if self.backend == "torch" or x.device.type != "cpu" or x.dtype != torch.float32 or self.levels > native.MAX_LEVELS:
+            return False
+        if self.backend == "kernel" and not native.available():
+            raise RuntimeError("HashGridEncoding(backend='kernel'): the fused kernel cannot be built here (no C++ "
+                               "compiler, or PNERF_NATIVE=0); use backend='auto' or 'torch'")
+        return native.available()
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = x.clamp(0, 1)
+        if self.uses_kernel(x):
+            params = [*(self.dense.grids if self.dense is not None else []),
+                      *([self.table] if self.table is not None else [])]
+            return native.HashGridKernel.apply(self._kernel_spec, x, *params)
         parts = [self.dense(x)] if self.dense is not None else []
         if self.table is not None:
             rows, weights = self.hashed_corners(x)
@@ -76,26 +99,30 @@ class HashGridEncoding(nn.Module):
 
 
 class _HashedTrilinear(torch.autograd.Function):
-    """out (B, L, F) = sum_c weights[b, l, c] * table[rows[b, l, c]]; gradient for the table only.
+    """out (B, L, F) = sum_c weights[b, l, c] * table[rows[b, l, c]].
 
-    One gather forward and one ``index_add_`` backward, without autograd keeping the
-    gathered (B, L, 8, F) corner features or differentiating the weights.
+    One gather forward and one ``index_add_`` backward, without autograd keeping the gathered
+    (B, L, 8, F) corner features. The weights' gradient (and through them the sample positions',
+    for pose refinement) is computed only when they require one, by gathering the corners again.
     """
 
     @staticmethod
     def forward(ctx, table: torch.Tensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         corners = table.index_select(0, rows.reshape(-1)).view(*rows.shape, table.shape[1])
-        ctx.save_for_backward(rows, weights)
-        ctx.table_rows = table.shape[0]
+        ctx.save_for_backward(table, rows, weights)
         return (corners * weights[..., None]).sum(2)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        rows, weights = ctx.saved_tensors
-        per_corner = (weights[..., None] * grad[:, :, None, :]).reshape(-1, grad.shape[-1])
-        grad_table = torch.zeros(ctx.table_rows, grad.shape[-1], dtype=grad.dtype, device=grad.device)
-        grad_table.index_add_(0, rows.reshape(-1), per_corner)
-        return grad_table, None, None
+        table, rows, weights = ctx.saved_tensors
+        grad_table = grad_weights = None
+        if ctx.needs_input_grad[0]:
+            per_corner = (weights[..., None] * grad[:, :, None, :]).reshape(-1, grad.shape[-1])
+            grad_table = torch.zeros_like(table).index_add_(0, rows.reshape(-1), per_corner)
+        if ctx.needs_input_grad[2]:
+            corners = table.index_select(0, rows.reshape(-1)).view(*rows.shape, table.shape[1])
+            grad_weights = (corners * grad[:, :, None, :]).sum(-1)
+        return grad_table, None, grad_weights
 
 
 def _corners(terms: torch.Tensor, combine) -> torch.Tensor:
