@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test install bench clean
+.PHONY: demo test install notebooks bench clean
 
 $(STAMP): setup.cfg pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,9 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+notebooks: $(STAMP)  # re-execute the notebooks (full runs, ~15 min) and save them with their outputs
+	$(PY) notebooks/run_notebooks.py
 
 bench: $(STAMP)  # needs ../shared/data; see benchmarks/README.md for the time each takes
 	$(PY) benchmarks/bench_tracking.py

@@ -63,21 +63,25 @@ def scale_intrinsic(intrinsic: o3d.camera.PinholeCameraIntrinsic, scale: float) 
 
 
 # -- poses -----------------------------------------------------------------------------------
-def check_poses(poses, n: int | None = None, what: str = "poses") -> np.ndarray:
-    """Return poses as (N, 4, 4) float64 after checking they are finite rigid transforms."""
+def check_poses(poses, n: int | None = None, what: str = "poses", allow_missing: bool = False) -> np.ndarray:
+    """Return poses as (N, 4, 4) float64 after checking they are finite rigid transforms.
+
+    allow_missing: rows that are entirely NaN mark frames without a pose (ground truth that
+    does not cover every frame) and pass; partly NaN or non-rigid rows still raise PoseError."""
     arr = np.asarray(poses, dtype=np.float64)
     if arr.ndim != 3 or arr.shape[1:] != (4, 4):
         raise PoseError(f"{what} must have shape (N, 4, 4), got {arr.shape}")
     if n is not None and arr.shape[0] != n:
         raise PoseError(f"{what} has {arr.shape[0]} poses for {n} frames")
     at = lambda bad: f" at frames {np.flatnonzero(bad)[:10].tolist()}" if len(arr) > 1 else ""  # noqa: E731
-    bad = ~np.isfinite(arr).all(axis=(1, 2))
+    missing = np.isnan(arr).all(axis=(1, 2)) if allow_missing else np.zeros(len(arr), bool)
+    bad = ~np.isfinite(arr).all(axis=(1, 2)) & ~missing
     if bad.any():
         raise PoseError(f"{what} contain NaN/inf{at(bad)}")
-    rot = arr[:, :3, :3]
+    rot = np.where(missing[:, None, None], np.eye(4), arr)[:, :3, :3]
     ortho = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(rot)
-    bottom = np.abs(arr[:, 3] - [0, 0, 0, 1]).max(axis=1)
+    bottom = np.abs(np.where(missing[:, None], [0, 0, 0, 1], arr[:, 3]) - [0, 0, 0, 1]).max(axis=1)
     bad = (ortho > 1e-3) | (np.abs(det - 1) > 1e-3) | (bottom > 1e-9)
     if bad.any():
         raise PoseError(
@@ -85,6 +89,11 @@ def check_poses(poses, n: int | None = None, what: str = "poses") -> np.ndarray:
             f"not [0,0,0,1]){at(bad)}"
         )
     return arr
+
+
+def missing_poses(poses: np.ndarray) -> np.ndarray:
+    """(N,) bool: the frames whose pose row is NaN (no pose known)."""
+    return np.isnan(np.asarray(poses, np.float64)).all(axis=(1, 2))
 
 
 def pose_to_extrinsic(pose: np.ndarray) -> np.ndarray:
@@ -95,6 +104,28 @@ def pose_to_extrinsic(pose: np.ndarray) -> np.ndarray:
 def extrinsic_to_pose(extrinsic: np.ndarray) -> np.ndarray:
     """Camera-to-world pose (4, 4) (or (N, 4, 4)) of Open3D's world-to-camera extrinsic."""
     return np.linalg.inv(np.asarray(extrinsic, np.float64))
+
+
+def camera_pose(pose, what: str = "pose") -> tuple[np.ndarray, o3d.camera.PinholeCameraIntrinsic | None]:
+    """(camera-to-world pose (4, 4), intrinsic or None) of a (4, 4) camera-to-world matrix or an
+    ``o3d.camera.PinholeCameraParameters`` (its world-to-camera extrinsic inverted; its intrinsic
+    when set)."""
+    if isinstance(pose, o3d.camera.PinholeCameraParameters):
+        intrinsic = pose.intrinsic if pose.intrinsic.width > 0 else None
+        return check_poses(extrinsic_to_pose(pose.extrinsic)[None], 1, f"{what}.extrinsic")[0], intrinsic
+    return check_poses(np.asarray(pose)[None], 1, what)[0], None
+
+
+def camera_poses(poses, n: int | None = None, what: str = "poses") -> tuple[np.ndarray, np.ndarray | None]:
+    """(poses (N, 4, 4) camera-to-world, covariances (N, 6, 6) or None) of an (N, 4, 4) array of
+    camera-to-world poses, an ``o3d.camera.PinholeCameraTrajectory`` (world-to-camera extrinsics,
+    inverted) or a :class:`~open3d_pnerf.tracking.Trajectory` (its poses and covariances)."""
+    if isinstance(poses, o3d.camera.PinholeCameraTrajectory):
+        extrinsics = np.stack([p.extrinsic for p in poses.parameters]) if poses.parameters else np.zeros((0, 4, 4))
+        return check_poses(extrinsic_to_pose(extrinsics), n, f"{what} (a PinholeCameraTrajectory)"), None
+    if hasattr(poses, "poses") and hasattr(poses, "covariances"):  # a Trajectory
+        return check_poses(poses.poses, n, f"{what}.poses"), np.asarray(poses.covariances, np.float64)
+    return check_poses(poses, n, what), None
 
 
 # -- pixels and rays (NumPy or torch) ----------------------------------------------------------

@@ -24,9 +24,9 @@ import numpy as np
 from ._files import atomic_write
 from .comparison import compare_with_tsdf
 from .config import FIELD_CONFIGS, ReconstructionConfig
-from .data import load_sample, load_sequence, write_log_trajectory, write_tum_trajectory
+from .data import load_sample, load_sequence, write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
 from .distributed import BACKENDS, DistributedContext, distributed_session
-from .errors import CheckpointError, ConfigError, DatasetError, InputError, PNeRFError
+from .errors import CheckpointError, ConfigError, DatasetError, InputError, PNeRFError, TrainingInterrupted
 from .evaluation import heldout_scores
 from .export import write_mesh_ply, write_point_cloud_ply
 from .losses import LOSSES
@@ -94,8 +94,11 @@ def _poses_for(seq, args, config, out: Path, reuse: bool = False, write_cache: b
     image-only sequence, or tracking reused from out/tracking when resuming, written there if
     write_cache)."""
     if args.gt_poses and seq.has_depth:
-        if seq.gt_poses is None:
-            raise InputError(f"--gt-poses: {args.data} has no ground-truth poses")
+        if seq.gt_poses is None or not seq.gt_valid.all():
+            lacking = "has no ground-truth poses" if seq.gt_poses is None else (
+                f"has no ground-truth pose for frames {np.flatnonzero(~seq.gt_valid)[:10].tolist()}; select the "
+                "covered frames with --frames")
+            raise InputError(f"--gt-poses: {args.data} {lacking}")
         return seq.gt_poses, np.zeros((len(seq), 6, 6))
     cache = out / "tracking"
     if seq.has_depth and reuse and (cache / "poses.npy").is_file():
@@ -193,6 +196,8 @@ def cmd_reconstruct(args) -> int:
 
         saved = _read_run_config(out, "--resume")
         config = ReconstructionConfig.from_dict(saved["config"])
+        if args.finish:  # no step left to train: export what the checkpoint has
+            config = config.replace(max_steps=1)
         for key in RUN_OPTIONS:
             setattr(args, key, saved[key])
         seq = _load(args)
@@ -215,6 +220,7 @@ def cmd_track(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_tum_trajectory(out / "trajectory_tum.txt", traj.poses, seq.timestamps)
     write_log_trajectory(out / "trajectory.log", traj.poses)
+    write_open3d_trajectory(out / "trajectory.json", traj.poses, seq.intrinsic)
     np.save(out / "poses.npy", traj.poses)
     np.save(out / "covariances.npy", traj.covariances)
     msg = f"tracked {len(seq)} frames; failed frames: {traj.failed_frames or 'none'}"
@@ -340,11 +346,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", nargs="?", help="dataset folder or 'sample'")
     p.add_argument("--out", default="out/reconstruction", help="output folder")
     p.add_argument("--resume", metavar="DIR", help="continue an interrupted run in DIR from its last checkpoint")
+    p.add_argument("--finish", action="store_true",
+                   help="with --resume: stop training and export what the checkpoint has (no further steps)")
     _add_data_options(p, data=False)
     _add_training_options(p)
     p.set_defaults(func=cmd_reconstruct)
 
-    p = sub.add_parser("track", help="RGB-D odometry + pose graph: trajectory (TUM, .log) and covariances")
+    p = sub.add_parser("track", help="RGB-D odometry + pose graph: trajectory (TUM, .log, Open3D JSON) and covariances")
     _add_data_options(p)
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=cmd_track)
@@ -379,12 +387,19 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.command == "reconstruct" and not (args.data or args.resume):
         parser.error("reconstruct needs DATA or --resume DIR")
-
+    if args.command == "reconstruct" and args.finish and not args.resume:
+        parser.error("--finish goes with --resume DIR")
     try:
         return args.func(args)
     except PNeRFError as exc:
         print(f"open3d-pnerf: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    except TrainingInterrupted as exc:
+        out = Path(args.resume or args.out) if args.command in ("reconstruct", "demo") else None
+        print(f"open3d-pnerf: interrupted after training step {exc.step}; the checkpoint is {exc.checkpoint}. "
+              f"Continue with `open3d-pnerf reconstruct --resume {out}`; add --finish to stop training and export "
+              "what it has", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except KeyboardInterrupt:
         print("open3d-pnerf: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

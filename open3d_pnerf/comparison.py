@@ -56,6 +56,10 @@ class Comparison:
                 lines.append(f"| {label} | " + " | ".join(cells) + " |")
         return "\n".join(lines) + "\n"
 
+    def _repr_markdown_(self) -> str:
+        """The table, for Jupyter."""
+        return self.markdown()
+
     def save(self, directory) -> Path:
         """Write comparison.json, comparison.md, compare_frame_<i>.png and tsdf_mesh.ply."""
         d = Path(directory)

@@ -40,3 +40,20 @@ class TrainingError(PNeRFError, RuntimeError):
 class DistributedError(PNeRFError, RuntimeError):
     """Data-parallel training could not join its process group, or a collective failed or
     timed out because another rank died or hung."""
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped training after `step` steps; `checkpoint` (a checkpoint.pt) holds the work.
+
+    A KeyboardInterrupt, so that an interrupted notebook cell or script stops; the message says
+    how to continue from the checkpoint or to export what it has.
+    """
+
+    def __init__(self, step: int, checkpoint):
+        self.step, self.checkpoint = step, checkpoint
+        folder = str(checkpoint.parent) if checkpoint is not None else None
+        super().__init__(
+            f"training interrupted after step {step}; the checkpoint is {checkpoint}. Continue with "
+            f"reconstruct(sequence, config, checkpoint_dir={folder!r}, resume=True) (the same sequence and "
+            "config); to stop training and export what it has, resume with config.replace(max_steps=1)"
+        )

@@ -63,8 +63,12 @@ def write_mesh_ply(path, mesh: o3d.geometry.TriangleMesh) -> None:
 
 
 def write_point_cloud_ply(path, cloud: o3d.geometry.PointCloud, sigma: np.ndarray | None = None) -> None:
-    """Write a point cloud as binary PLY with an extra per-vertex `depth_sigma` (m), atomically."""
+    """Write a point cloud as binary PLY, atomically: colours as uchar red/green/blue (what
+    Open3D's readers, MeshLab, CloudCompare, trimesh and plyfile expect) and, given `sigma`
+    (M,), an extra float per-vertex property `depth_sigma` (m)."""
     t = o3d.t.geometry.PointCloud.from_legacy(cloud)
+    if cloud.has_colors():
+        t.point.colors = o3d.core.Tensor((np.clip(np.asarray(cloud.colors), 0, 1) * 255).round().astype(np.uint8))
     if sigma is not None:
         t.point.depth_sigma = o3d.core.Tensor(np.asarray(sigma, np.float32)[:, None])
     atomic_write(path, lambda p: o3d.t.io.write_point_cloud(p, t, write_ascii=False))

@@ -18,11 +18,11 @@ import torch
 from tqdm.auto import tqdm
 
 from .batches import RayBatcher
-from .camera import backproject, check_covariances, check_poses
+from .camera import backproject, camera_poses, check_covariances
 from .config import ReconstructionConfig
 from .data.sequence import RGBDSequence, check_sequence
 from .distributed import DistributedContext, distributed_session
-from .errors import InputError
+from .errors import InputError, TrainingInterrupted
 from .model import PNeRFModel, build_model
 from .pose_refinement import follow_refinement
 from .reconstruction import Reconstruction, evenly_spaced
@@ -60,19 +60,27 @@ def training_frames(sequence: RGBDSequence, indices: np.ndarray, config: Reconst
 # -- poses ---------------------------------------------------------------------------------------
 def track_sequence(sequence: RGBDSequence, config: ReconstructionConfig) -> Trajectory:
     """open3d_pnerf.track with the config's tracking settings: the one place that decides them."""
-    return track(sequence, point_noise_m=config.tracking.covariance_scale, progress=config.progress)
+    return track(sequence, loop_closure=config.tracking.loop_closure, point_noise_m=config.tracking.point_noise_m,
+                 progress=config.progress)
+
+
+def given_poses(poses, covariances, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(poses (n, 4, 4), covariances (n, 6, 6)) of given poses: an (n, 4, 4) camera-to-world array,
+    an ``o3d.camera.PinholeCameraTrajectory`` or a Trajectory (whose covariances are used unless
+    `covariances` is given); covariances zero if none is known."""
+    poses, carried = camera_poses(poses, n, "poses")
+    return poses, check_covariances(carried if covariances is None else covariances, n)
 
 
 def resolve_poses(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covariances=None):
-    """(poses (N, 4, 4), covariances (N, 6, 6)): the given ones (covariances zero if omitted),
-    else the sequence's structure from motion, else :func:`track_sequence`'s."""
-    n = len(sequence)
+    """(poses (N, 4, 4), covariances (N, 6, 6)): the given ones (see :func:`given_poses`), else the
+    sequence's own (structure from motion, or the capture's), else :func:`track_sequence`'s."""
     if poses is None and sequence.sfm is not None:
         poses, covariances = sequence.sfm.poses, sequence.sfm.covariances
     if poses is None:
         trajectory = track_sequence(sequence, config)
         return trajectory.poses, trajectory.covariances
-    return check_poses(poses, n, "poses"), check_covariances(covariances, n)
+    return given_poses(poses, covariances, len(sequence))
 
 
 # -- targets and the scene box ---------------------------------------------------------------------
@@ -166,7 +174,7 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
         config = config.replace(device=dist.device(config.device))
     train_idx, hold_idx = split_frames(n, config.holdout_every, config.train_views)
     if poses is not None:  # fail before minutes of work
-        check_poses(poses, n, "poses"), check_covariances(covariances, n)
+        poses, covariances = given_poses(poses, covariances, n)
     checkpoint = None
     if resume:  # read it now, not after minutes of tracking
         if not checkpoint_dir:
@@ -204,6 +212,8 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     try:
         train_stats = trainer.train()
         history = trainer.history
+        if train_stats["interrupted"]:  # Ctrl-C: keep the work, then stop like any interrupted call
+            raise TrainingInterrupted(trainer.step, _interrupted_checkpoint(trainer, dist))
     finally:
         targets_summary = targets.summary()
         if storage is not None:  # the model has learned them; do not leave gigabytes behind
@@ -227,6 +237,15 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     stages.update(1)
     stages.close()
     return recon
+
+
+def _interrupted_checkpoint(trainer: Trainer, dist: DistributedContext) -> Path | None:
+    """The checkpoint of an interrupted training run: the one in checkpoint_dir, or (rank 0,
+    without a checkpoint_dir) one written now to a new temporary folder."""
+    if trainer.checkpoint_dir is None and dist.is_main:
+        trainer.checkpoint_dir = Path(tempfile.mkdtemp(prefix="pnerf-interrupted-"))
+        trainer.save_checkpoint()
+    return trainer.checkpoint_path
 
 
 def _refined_poses(model: PNeRFModel, poses: np.ndarray, train_idx, hold_idx) -> np.ndarray:
@@ -264,7 +283,8 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
                 covariances=None, checkpoint_dir=None, resume: bool = False) -> Reconstruction:
     """Reconstruct a probabilistic scene model from an RGB-D sequence.
 
-    Stages: poses (tracking, skipped when `poses` (N, 4, 4) camera-to-world are given),
+    Stages: poses (tracking, skipped when `poses` are given: (N, 4, 4) camera-to-world, an Open3D
+    ``PinholeCameraTrajectory`` or a Trajectory),
     per-pixel depth targets, training the model, exporting mesh and point cloud. An image-only
     sequence (an LLFF folder: ``has_depth`` False) brings its SfM poses and covariances and
     trains on its sparse points' targets; its depth spread is not calibrated (no sensor depth).
@@ -277,6 +297,12 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     checkpoints, calibrates and exports. The other ranks return the same trained field
     without calibration or export (no mesh or point cloud). Resuming reads checkpoint_dir
     on every rank: it must be the same checkpoint on every machine.
+
+    Ctrl-C (or interrupting a notebook cell) stops training after the current step, writes the
+    checkpoint (to checkpoint_dir, or a new temporary folder) and raises
+    :class:`~open3d_pnerf.errors.TrainingInterrupted`, a KeyboardInterrupt naming it. Resume
+    with the same sequence and config; to export what the checkpoint has without training
+    further, resume with ``config.replace(max_steps=1)``.
     """
     check_sequence(rgbd_sequence, 2, "reconstruct(): rgbd_sequence")
     config = checked_config(config)

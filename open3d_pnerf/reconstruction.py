@@ -4,7 +4,8 @@ its renders, its depth-sigma calibration, and its folder on disk.
 A saved reconstruction is a folder: ``reconstruction.json`` (format version, config, box,
 intrinsic, frame split), ``model.pt`` (the field's weights only), ``poses.npy``,
 ``covariances.npy``, ``color_gains.npy``, ``mesh.ply``, ``point_cloud.ply`` (with per-point
-``depth_sigma``), and the trajectory as ``trajectory_tum.txt`` and ``trajectory.log``.
+``depth_sigma``), and the trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's
+``trajectory.json`` (a PinholeCameraTrajectory with the training intrinsic).
 """
 
 from __future__ import annotations
@@ -19,10 +20,11 @@ import torch
 from tqdm.auto import tqdm
 
 from ._files import atomic_write_all
-from .camera import check_intrinsic, check_poses, intrinsic_matrix, pinhole, scale_intrinsic
+from .camera import camera_pose, check_intrinsic, intrinsic_matrix, pinhole, pose_to_extrinsic, scale_intrinsic
 from .config import ReconstructionConfig
+from .data.nerfstudio import write_nerfstudio
 from .data.sequence import RGBDSequence, check_sequence
-from .data.trajectories import write_log_trajectory, write_tum_trajectory
+from .data.trajectories import write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
 from .errors import CheckpointError, ConfigError, InputError
 from .export import (
     mesh_from_renders,
@@ -90,18 +92,39 @@ class Reconstruction:
         mesh = f"{len(self.mesh.triangles)} triangles" if self.mesh is not None else "no mesh"
         return f"Reconstruction({len(self.poses)} frames, {len(self.train_indices)} trained, {mesh})"
 
+    def _repr_markdown_(self) -> str:
+        """A summary table for Jupyter."""
+        cfg, training = self.config, self.stats.get("training", {})
+        size = self.aabb[1] - self.aabb[0]
+        rows = [
+            ("frames", f"{len(self.poses)}: {len(self.train_indices)} trained, {len(self.holdout_indices)} held out"),
+            ("method", f"loss `{cfg.loss}`, field `{cfg.field}`, {self.intrinsic.width}x{self.intrinsic.height} images"),
+            ("training", f"{training['steps']} steps in {training['seconds']} s" if training else "-"),
+            ("scene box (m)", " x ".join(f"{s:.2f}" for s in size)),
+            ("mesh", f"{len(self.mesh.triangles)} triangles" if self.mesh is not None else "none"),
+            ("point cloud", f"{len(self.point_cloud.points)} points with depth sigma" if self.point_cloud is not None
+             else "none"),
+            ("depth sigma scale", f"{self.depth_sigma_scale:.3g}"),
+        ]
+        return "\n".join(["| Reconstruction | |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in rows]) + "\n"
+
     def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None, chunk: int = 2048,
                frame: int | None = None) -> dict:
-        """Render the field from a camera-to-world pose (4, 4).
+        """Render the field from a camera.
 
-        intrinsic: an ``o3d.camera.PinholeCameraIntrinsic`` (default: the training one).
+        pose: a camera-to-world (4, 4) matrix, or an ``o3d.camera.PinholeCameraParameters``
+        (world-to-camera extrinsic, as Open3D stores it; its intrinsic is used when set and
+        `intrinsic` is not given). intrinsic: an ``o3d.camera.PinholeCameraIntrinsic`` (default:
+        the training one). A matrix that looks like a world-to-camera extrinsic (the camera far
+        outside the scene box, its inverse inside) gives a warning.
         frame: index of one of the reconstruction's frames whose camera exposure the colour
         should have (``color_gains[frame]``); None gives the training frames' average exposure.
         Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m,
         depth_std (H, W) m (the spread of the model's depth distribution along each ray,
         times depth_sigma_scale: a calibrated 1-sigma error), opacity (H, W) in [0, 1].
         """
-        intrinsic = check_intrinsic(intrinsic or self.intrinsic)
+        pose, carried = self._camera(pose)
+        intrinsic = check_intrinsic(intrinsic or carried or self.intrinsic)
         h, w = intrinsic.height, intrinsic.width
         v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
         out = self._render_pixels(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float(), chunk)
@@ -135,7 +158,8 @@ class Reconstruction:
         if uv.ndim != 2 or uv.shape[1] != 2:
             raise InputError(f"pixels_uv must be (R, 2) pixel coordinates (u, v), got shape {uv.shape}")
         uv = torch.as_tensor(uv, device=self.device)
-        rays = self._rays(pose, check_intrinsic(intrinsic or self.intrinsic), uv[:, 0], uv[:, 1])
+        pose, carried = self._camera(pose)
+        rays = self._rays(pose, check_intrinsic(intrinsic or carried or self.intrinsic), uv[:, 0], uv[:, 1])
         out = self.model.render(rays, keys=("t", "edges", "weights", "opacity"))
         norms = rays.norms[:, None]
         edges = out["edges"] / norms
@@ -176,8 +200,19 @@ class Reconstruction:
 
     def _rays(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic, u: torch.Tensor, v: torch.Tensor) -> Rays:
         """Rays of pixels (u, v) (R,) from a camera-to-world pose (4, 4), clipped to the scene box."""
-        pose = check_poses(np.asarray(pose)[None], 1, "pose")[0]
         return self.model.camera_rays(pose, intrinsic_matrix(intrinsic), u, v)
+
+    def _camera(self, pose) -> tuple[np.ndarray, o3d.camera.PinholeCameraIntrinsic | None]:
+        """(camera-to-world pose, intrinsic or None) of what render() accepts (see there)."""
+        pose, intrinsic = camera_pose(pose)
+        box = self.aabb.astype(np.float64)
+        size = box[1] - box[0]
+        outside = lambda c: ((c < box[0] - size) | (c > box[1] + size)).any()  # noqa: E731
+        if outside(pose[:3, 3]) and not outside(pose_to_extrinsic(pose)[:3, 3]):
+            warnings.warn("render(): the pose puts the camera far outside the scene box, while its inverse puts it "
+                          "inside: is it an Open3D world-to-camera extrinsic? Poses are camera-to-world; pass "
+                          "o3d.camera.PinholeCameraParameters to render it as Open3D means it", stacklevel=3)
+        return pose, intrinsic
 
     def export_geometry(self, progress: bool = True) -> None:
         """Render training views (at most export.max_views, evenly spaced) at export.scale and
@@ -191,6 +226,19 @@ class Reconstruction:
             renders, poses, K, cfg.min_opacity, cfg.max_point_std, voxel_size=cfg.mesh_voxel_size / 2
         )
         self.mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, cfg.max_point_std)
+
+    def write_nerfstudio(self, path, sequence: RGBDSequence, progress: bool = False) -> Path:
+        """Write the frames of `sequence` (the one reconstructed) with this reconstruction's poses
+        (refined ones when refine_poses was on) as a nerfstudio folder, with its training frames as
+        nerfstudio's train split and its held-out frames as val/test: nerfstudio's methods then
+        train and are scored on exactly these frames and poses. See
+        :func:`open3d_pnerf.data.nerfstudio.write_nerfstudio`."""
+        check_sequence(sequence, what="write_nerfstudio(): sequence")
+        if len(sequence) != len(self.poses):
+            raise InputError(f"write_nerfstudio(): the sequence has {len(sequence)} frames, the reconstruction "
+                             f"{len(self.poses)}")
+        return write_nerfstudio(sequence, path, self.poses, self.train_indices,
+                                self.holdout_indices if len(self.holdout_indices) else None, progress)
 
     # -- persistence -------------------------------------------------------------------
     def save(self, directory) -> Path:
@@ -223,6 +271,7 @@ class Reconstruction:
             d / "color_gains.npy": lambda p: np.save(p, self.color_gains),
             d / "trajectory_tum.txt": lambda p: write_tum_trajectory(p, self.poses, self.timestamps),
             d / "trajectory.log": lambda p: write_log_trajectory(p, self.poses),
+            d / "trajectory.json": lambda p: write_open3d_trajectory(p, self.poses, self.intrinsic),
         }
         empty = []
         for name, geometry, write in (

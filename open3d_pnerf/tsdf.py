@@ -7,7 +7,7 @@ import numpy as np
 import open3d as o3d
 from tqdm.auto import tqdm
 
-from .camera import check_poses, intrinsic_matrix, pose_to_extrinsic
+from .camera import camera_poses, intrinsic_matrix, pose_to_extrinsic
 from .data.sequence import RGBDSequence, check_sequence
 from .errors import InputError
 from .raycast import MeshRaycaster
@@ -124,13 +124,15 @@ def tsdf_fusion(
     progress: bool = True,
     weight_threshold: float = 3.0,
 ):
-    """Open3D TSDF fusion of every frame of `sequence` at camera-to-world `poses` (N, 4, 4).
+    """Open3D TSDF fusion of every frame of `sequence` at camera-to-world `poses` (N, 4, 4) (or an
+    ``o3d.camera.PinholeCameraTrajectory`` or a Trajectory).
 
     Returns the coloured ``o3d.geometry.TriangleMesh``; with return_volume=True returns the
     :class:`TSDFVolume` instead (for ``.point_cloud()`` and ``.render(pose, K, w, h)``).
     weight_threshold: surfaces keep voxels observed more often than this (see TSDFVolume).
     """
-    poses = check_poses(poses, len(check_sequence(sequence, what="tsdf_fusion(): sequence", needs_depth=True)), "poses")
+    n = len(check_sequence(sequence, what="tsdf_fusion(): sequence", needs_depth=True))
+    poses = camera_poses(poses, n, "poses")[0]
     volume = TSDFVolume(voxel_size, sdf_trunc, depth_max, device=device, weight_threshold=weight_threshold)
     K = sequence.K
     K_color = intrinsic_matrix(sequence.color_intrinsic)

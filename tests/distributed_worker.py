@@ -7,7 +7,7 @@ MASTER_ADDR, MASTER_PORT set) it is one rank. The JSON holds overrides of the "t
 Poses are the sample's ground truth; checkpoints go to OUT_DIR/checkpoints. Writes
 OUT_DIR/rank{RANK}.pt (rank 0 when alone) with the trained field's state_dict, the training
 stats, and the number of rays every render_rays call of training received (the real
-function, wrapped to count).
+function, wrapped to count); after Ctrl-C (TrainingInterrupted) only the step it stopped after.
 """
 
 import json
@@ -20,6 +20,7 @@ import torch
 
 import open3d_pnerf.model as model
 from open3d_pnerf import ReconstructionConfig, load_sample, reconstruct
+from open3d_pnerf.errors import TrainingInterrupted
 
 
 def main(out: Path, overrides: dict) -> None:
@@ -33,9 +34,13 @@ def main(out: Path, overrides: dict) -> None:
     model.render_rays = counting_render_rays
     seq = load_sample()
     config = ReconstructionConfig.preset("test", **{"progress": False, **overrides})
-    recon = reconstruct(seq, config, poses=seq.gt_poses, covariances=np.zeros((len(seq), 6, 6)),
-                        checkpoint_dir=out / "checkpoints")
     rank = int(os.environ.get("RANK", 0))
+    try:
+        recon = reconstruct(seq, config, poses=seq.gt_poses, covariances=np.zeros((len(seq), 6, 6)),
+                            checkpoint_dir=out / "checkpoints")
+    except TrainingInterrupted as stop:
+        torch.save({"interrupted_after": stop.step}, out / f"rank{rank}.pt")
+        return
     torch.save({"field": recon.field.state_dict(), "stats": recon.stats["training"], "rays_per_call": rays_per_call,
                 "exported": recon.mesh is not None}, out / f"rank{rank}.pt")
 

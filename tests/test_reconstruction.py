@@ -14,13 +14,14 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+import plyfile
 import pytest
 import torch
 
 from open3d_pnerf import Reconstruction, ReconstructionConfig, reconstruct
 from open3d_pnerf.camera import backproject, scale_intrinsic
 from open3d_pnerf.data import load_sample
-from open3d_pnerf.errors import CheckpointError, InputError
+from open3d_pnerf.errors import CheckpointError, InputError, TrainingInterrupted
 from open3d_pnerf.export import (
     mesh_from_renders,
     point_cloud_from_renders,
@@ -31,6 +32,7 @@ from open3d_pnerf.export import (
 )
 from open3d_pnerf.pipeline import scene_box, split_frames
 from open3d_pnerf.reconstruction import FORMAT_VERSION
+from open3d_pnerf.training import Trainer, read_checkpoint
 from open3d_pnerf.targets import DepthTargets, depth_targets
 
 TRAIN_STEPS = 150  # enough for a confident surface to export (opacity >= 0.9, std <= 5 cm)
@@ -157,6 +159,30 @@ def test_point_cloud_ply_round_trip_keeps_depth_sigma(tmp_path):
     assert s_none is None and len(plain.points) == 50
 
 
+def test_point_cloud_ply_reads_the_same_in_open3d_and_other_ply_readers(tmp_path):
+    """Colours as uchar (Open3D's legacy reader divides any colour by 255: float colours came out
+    black), depth_sigma as an extra float property every reader keeps."""
+    rng = np.random.default_rng(1)
+    colors = rng.integers(0, 256, (40, 3)) / 255.0
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rng.random((40, 3))))
+    cloud.colors = o3d.utility.Vector3dVector(colors)
+    sigma = rng.random(40).astype(np.float32)
+    path = tmp_path / "cloud.ply"
+    write_point_cloud_ply(path, cloud, sigma)
+    legacy = o3d.io.read_point_cloud(str(path))
+    np.testing.assert_allclose(np.asarray(legacy.colors), colors, atol=1e-6)
+    tensor = o3d.t.io.read_point_cloud(str(path))
+    assert tensor.point.colors.dtype == o3d.core.uint8
+    np.testing.assert_array_equal(tensor.point.colors.numpy(), np.round(colors * 255))
+    np.testing.assert_array_equal(tensor.point.depth_sigma.numpy()[:, 0], sigma)
+    vertex = plyfile.PlyData.read(str(path))["vertex"].data
+    assert vertex.dtype["red"] == np.uint8 and vertex.dtype["depth_sigma"] == np.float32
+    np.testing.assert_array_equal(np.stack([vertex["red"], vertex["green"], vertex["blue"]], 1), np.round(colors * 255))
+    np.testing.assert_array_equal(vertex["depth_sigma"], sigma)
+    np.testing.assert_allclose(np.stack([vertex["x"], vertex["y"], vertex["z"]], 1), np.asarray(cloud.points),
+                               atol=1e-6)
+
+
 def test_mesh_from_renders_fuses_a_plane(tmp_path):
     renders, poses = plane_renders(5, 60, 80)
     K = np.asarray(intrinsic(80, 60, 60.0).intrinsic_matrix)
@@ -191,13 +217,13 @@ class WallField(torch.nn.Module):
     def __init__(self, aabb, z0=1.2, color=(0.1, 0.6, 0.3)):
         super().__init__()
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32))
-        self.z0, self.color = z0, torch.tensor(color)
+        self.z0, self.color_value = z0, torch.tensor(color)
 
-    def density(self, x):
-        return torch.where(x[:, 2] >= self.z0, 1e3, 0.0)
+    def geometry(self, x):
+        return torch.where(x[:, 2] >= self.z0, 1e3, 0.0), torch.zeros(len(x), 1)
 
-    def forward(self, x, d):
-        return self.density(x), self.color.expand(x.shape[0], 3)
+    def color(self, features, d):
+        return self.color_value.expand(features.shape[0], 3)
 
 
 def wall_reconstruction(z0=1.2):
@@ -548,3 +574,39 @@ def test_a_folder_saved_before_the_sub_configs_loads_and_renders_as_it_did():
     assert set(out) == set(expected.files)
     for key in expected.files:
         np.testing.assert_allclose(out[key], expected[key], rtol=1e-6, atol=1e-6)
+
+
+def interrupt_training_at(monkeypatch, step: int) -> None:
+    """Make every Trainer see a Ctrl-C when it reaches `step` (as a real SIGINT mid-step does)."""
+    real = Trainer.train_step
+
+    def train_step(self):
+        if self.step == step:
+            raise KeyboardInterrupt
+        return real(self)
+
+    monkeypatch.setattr(Trainer, "train_step", train_step)
+
+
+def test_ctrl_c_stops_reconstruct_after_writing_a_checkpoint_it_resumes_from(sample, tmp_path, monkeypatch):
+    """Before: reconstruct() swallowed the KeyboardInterrupt and went on to calibrate and export."""
+    seq = sample.select(range(4))
+    cfg = ReconstructionConfig.preset("test", max_steps=10, progress=False)
+    interrupt_training_at(monkeypatch, 3)
+    exports = []
+    monkeypatch.setattr(Reconstruction, "export_geometry", lambda self, **k: exports.append(self))
+    with pytest.raises(KeyboardInterrupt) as info:
+        reconstruct(seq, cfg, poses=seq.gt_poses, checkpoint_dir=tmp_path / "ckpt")
+    assert isinstance(info.value, TrainingInterrupted) and info.value.step == 3 and not exports
+    assert info.value.checkpoint == tmp_path / "ckpt" / "checkpoint.pt" and "resume=True" in str(info.value)
+    assert read_checkpoint(info.value.checkpoint)["step"] == 3
+    # without a checkpoint_dir the work goes to a new temporary folder that the error names
+    with pytest.raises(TrainingInterrupted) as info:
+        reconstruct(seq, cfg, poses=seq.gt_poses)
+    assert read_checkpoint(info.value.checkpoint)["step"] == 3 and "pnerf-interrupted-" in str(info.value)
+    shutil.rmtree(info.value.checkpoint.parent)
+    # "stop training now and export what you have": resume with no step left
+    monkeypatch.undo()
+    recon = reconstruct(seq, cfg.replace(max_steps=1), poses=seq.gt_poses, checkpoint_dir=tmp_path / "ckpt",
+                        resume=True)
+    assert recon.stats["training"]["steps"] == 3 and recon.point_cloud is not None

@@ -40,7 +40,7 @@ def read_open3d_folder(path: Path, intrinsic=None, depth_scale: float | None = N
     readers = [file_reader(c, d, scale) for c, d in zip(colors, depths)]
     intrinsic = intrinsic or json_intrinsic
     logs = sorted(path.glob("*.log"))
-    poses = check_poses(read_log_trajectory(logs[0]), what=str(logs[0])) if logs else None
+    poses = check_poses(read_log_trajectory(logs[0]), what=str(logs[0]), allow_missing=True) if logs else None
     if poses is not None and len(poses) != len(readers):
         warnings.warn(f"{logs[0]}: {len(poses)} poses for {len(readers)} frames; gt_poses left out")
         poses = None

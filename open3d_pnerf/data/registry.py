@@ -102,6 +102,7 @@ def load_sequence(
 
 def _register_builtin_formats() -> None:
     from .llff import POSES_FILE, is_llff, read_llff
+    from .nerfstudio import TRANSFORMS, is_nerfstudio, read_nerfstudio
     from .open3d_folder import is_open3d_folder, read_open3d_folder
     from .seven_scenes import is_seven_scenes, read_seven_scenes
     from .tum import is_tum, read_tum
@@ -112,6 +113,8 @@ def _register_builtin_formats() -> None:
     for fmt in (
         Format("an LLFF image folder", f"{POSES_FILE} + images_N/, no depth, camera from {POSES_FILE}", is_llff,
                llff, frozenset()),
+        Format("nerfstudio", f"{TRANSFORMS} + images, optional depth", is_nerfstudio, read_nerfstudio,
+               frozenset({"intrinsic", "depth_scale", "depth_trunc"})),
         Format("TUM RGB-D", "rgb.txt + depth.txt", is_tum, read_tum),
         Format("7-Scenes", "frame-XXXXXX.color.png/.depth.png", is_seven_scenes, read_seven_scenes),
         Format("Open3D/Redwood", "color/ + depth/", is_open3d_folder, read_open3d_folder),

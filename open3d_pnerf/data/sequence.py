@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from ..camera import check_intrinsic, check_poses, intrinsic_matrix, scale_intrinsic
+from ..camera import check_intrinsic, check_poses, intrinsic_matrix, missing_poses, scale_intrinsic
 from ..errors import DatasetError, InputError
 from .images import FrameReader, constant_reader, depth_in_metres
 from .sfm import SfMData
@@ -42,7 +42,8 @@ class RGBDSequence:
     Frames are read from their source only when indexed, so a 2,000-frame sequence never
     sits in memory at once. ``seq[i]`` gives a :class:`Frame`; ``seq.intrinsic`` is the
     depth camera's ``o3d.camera.PinholeCameraIntrinsic`` (colour is registered to it unless
-    ``color_intrinsic`` says otherwise); ``seq.gt_poses`` is (N, 4, 4) camera-to-world or None.
+    ``color_intrinsic`` says otherwise); ``seq.gt_poses`` is (N, 4, 4) camera-to-world or None,
+    with NaN rows for frames the ground truth does not cover (``seq.gt_valid`` says which have it).
     has_depth: False for image-only sequences (their frames' depth is all zero); those carry
     ``sfm`` (:class:`~open3d_pnerf.data.sfm.SfMData`: poses, covariances, sparse points).
     """
@@ -75,7 +76,8 @@ class RGBDSequence:
         )
         if self.timestamps.shape != (n,):
             raise InputError(f"{name}: {len(self.timestamps)} timestamps for {n} frames")
-        self.gt_poses = None if gt_poses is None else check_poses(gt_poses, n, f"{name}: gt_poses")
+        self.gt_poses = None if gt_poses is None else check_poses(gt_poses, n, f"{name}: gt_poses",
+                                                                  allow_missing=True)
         if depth_trunc < 0:
             raise InputError(f"depth_trunc must be >= 0 metres (0 = no truncation), got {depth_trunc}")
         if not (0 < image_scale <= 1):
@@ -111,6 +113,11 @@ class RGBDSequence:
         return self.intrinsic.height, self.intrinsic.width
 
     @property
+    def gt_valid(self) -> np.ndarray | None:
+        """(N,) bool: the frames with a ground-truth pose (None without ground truth)."""
+        return None if self.gt_poses is None else ~missing_poses(self.gt_poses)
+
+    @property
     def sfm(self) -> SfMData | None:
         """The structure from motion of an image-only sequence (None for RGB-D), with
         reprojection errors in pixels at the sequence's image scale."""
@@ -129,10 +136,13 @@ class RGBDSequence:
     def __len__(self) -> int:
         return len(self._readers)
 
-    def __getitem__(self, index: int) -> Frame:
+    def __getitem__(self, index: int | slice) -> Frame | "RGBDSequence":
+        """Frame `index`, or for a slice (``seq[10:40:2]``) the sub-sequence of those frames."""
         n = len(self)
+        if isinstance(index, slice):
+            return self.select(np.arange(n)[index])
         if not isinstance(index, (int, np.integer)):
-            raise InputError(f"frame index must be an int, got {type(index).__name__}; use .select()")
+            raise InputError(f"frame index must be an int or a slice, got {type(index).__name__}; use .select()")
         if not -n <= index < n:
             raise IndexError(f"frame index {index} out of range for {n} frames")
         index = int(index) % n
@@ -146,8 +156,12 @@ class RGBDSequence:
         h, w = self.image_size
         if not self.has_depth:
             return f"RGBDSequence({self.name!r}, {len(self)} images, {w}x{h}, no depth, {len(self.sfm.points)} SfM points)"
-        gt = "with" if self.gt_poses is not None else "without"
-        return f"RGBDSequence({self.name!r}, {len(self)} frames, {w}x{h}, {gt} GT poses)"
+        if self.gt_poses is None:
+            gt = "without GT poses"
+        else:
+            covered = int(self.gt_valid.sum())
+            gt = "with GT poses" if covered == len(self) else f"with GT poses for {covered} of them"
+        return f"RGBDSequence({self.name!r}, {len(self)} frames, {w}x{h}, {gt})"
 
     def _describe(self, index: int) -> str:
         """'<name> frame <i> (<source>)': the files (or images[i]) the frame comes from."""
@@ -232,6 +246,13 @@ class RGBDSequence:
         warnings.warn("RGBDSequence.rescaled(s) is deprecated: use at_scale(s) (absolute) or scaled_by(f) "
                       "(relative)", DeprecationWarning, stacklevel=2)
         return self.at_scale(image_scale)
+
+    def write_nerfstudio(self, path, poses: np.ndarray | None = None, progress: bool = False):
+        """Write the frames as a nerfstudio folder (``transforms.json``); see
+        :func:`open3d_pnerf.data.nerfstudio.write_nerfstudio`."""
+        from .nerfstudio import write_nerfstudio
+
+        return write_nerfstudio(self, path, poses, progress=progress)
 
     def to_open3d(self, index: int) -> o3d.geometry.RGBDImage:
         """Frame `index` as an ``o3d.geometry.RGBDImage`` (depth float metres, colour uint8).

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -30,9 +31,13 @@ def read_seven_scenes(path: Path, intrinsic=None, depth_scale: float | None = No
         if color is None:
             raise DatasetError(f"{path}: {stem}.color.png/.jpg missing for {d.name}")
         readers.append(file_reader(color, d, scale, invalid_raw=65535))  # 7-Scenes' invalid-depth mark
-        pose_file = path / f"{stem}.pose.txt"
-        poses.append(_read_pose(pose_file) if pose_file.is_file() else None)
-    gt = np.stack(poses) if all(p is not None for p in poses) else None
+        poses.append(_read_pose(path / f"{stem}.pose.txt"))
+    gt = np.stack(poses) if any(np.isfinite(p).all() for p in poses) else None
+    if gt is not None and np.isnan(gt).any():
+        missing = np.flatnonzero(np.isnan(gt).all(axis=(1, 2)))
+        warnings.warn(f"{path}: {len(missing)} of {len(gt)} frames have no usable frame-*.pose.txt (frames "
+                      f"{missing[:10].tolist()}{' ...' if len(missing) > 10 else ''}); their gt_poses rows are NaN "
+                      "(sequence.gt_valid)")
     intr_file = path / "camera-intrinsics.txt"
     if intrinsic is None:
         if intr_file.is_file():
@@ -51,7 +56,14 @@ def read_seven_scenes(path: Path, intrinsic=None, depth_scale: float | None = No
 
 
 def _read_pose(path: Path) -> np.ndarray:
-    return check_poses(read_matrix(path, (4, 4))[None], 1, str(path))[0]
+    """The 4x4 pose of a frame's pose file; NaN for a missing file or one with inf/NaN entries
+    (7-Scenes marks frames where its tracking was lost so)."""
+    if not path.is_file():
+        return np.full((4, 4), np.nan)
+    pose = read_matrix(path, (4, 4))
+    if not np.isfinite(pose).all():
+        return np.full((4, 4), np.nan)
+    return check_poses(pose[None], 1, str(path))[0]
 
 
 def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:

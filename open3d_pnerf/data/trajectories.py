@@ -8,7 +8,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._files import atomic_write
-from ..errors import DatasetError
+from ..camera import check_poses, pose_to_extrinsic
+from ..errors import DatasetError, InputError
 
 
 def read_log_trajectory(path) -> np.ndarray:
@@ -44,3 +45,23 @@ def write_tum_trajectory(path, poses: np.ndarray, timestamps: np.ndarray) -> Non
     ]
     text = "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n"
     atomic_write(path, lambda p: Path(p).write_text(text))
+
+
+def write_open3d_trajectory(path, poses: np.ndarray, intrinsic) -> None:
+    """Write (N, 4, 4) camera-to-world poses as an Open3D ``PinholeCameraTrajectory`` (world-to-camera
+    extrinsics with `intrinsic`, an ``o3d.camera.PinholeCameraIntrinsic``), atomically: JSON for a
+    ``.json`` path, the Redwood ``.log`` form for ``.log``; ``o3d.io.read_pinhole_camera_trajectory``
+    reads both, and Open3D's reconstruction system and RGBD integration take them."""
+    import open3d as o3d
+
+    path = Path(path)
+    if path.suffix not in (".json", ".log"):
+        raise InputError(f"{path}: an Open3D trajectory file ends in .json or .log")
+    trajectory = o3d.camera.PinholeCameraTrajectory()
+    parameters = []
+    for pose in check_poses(poses, what="poses"):
+        p = o3d.camera.PinholeCameraParameters()
+        p.intrinsic, p.extrinsic = intrinsic, pose_to_extrinsic(pose)
+        parameters.append(p)
+    trajectory.parameters = parameters
+    atomic_write(path, lambda p: o3d.io.write_pinhole_camera_trajectory(p, trajectory))

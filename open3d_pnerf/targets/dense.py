@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..camera import backproject, check_covariances, check_poses, nearest_per_pixel, nearest_pixels, unit_rays
+from ..camera import backproject, camera_poses, check_covariances, nearest_per_pixel, nearest_pixels, unit_rays
 from ..data.sequence import RGBDSequence, check_sequence
 from ..errors import InputError
 from .noise import SensorNoise
@@ -70,7 +70,7 @@ def depth_targets(
         poses, covariances = sfm.poses, sfm.covariances
     if poses is None:
         raise InputError("depth_targets() needs a trajectory or poses=(N, 4, 4) camera-to-world")
-    poses = check_poses(poses, n, "poses")
+    poses = camera_poses(poses, n, "poses")[0]
     covs = check_covariances(covariances, n)
     if not sequence.has_depth:
         pts = sfm.points
