@@ -12,7 +12,7 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-import open3d_pnerf.data.images as sequence_module
+import open3d_pnerf.data.images as images_module
 from open3d_pnerf.data import (
     RGBDSequence,
     check_poses,
@@ -23,6 +23,7 @@ from open3d_pnerf.data import (
     write_tum_trajectory,
 )
 from open3d_pnerf.errors import InputError, PoseError
+from open3d_pnerf.tracking import absolute_trajectory_error
 
 
 # -- helpers --------------------------------------------------------------------------------
@@ -92,13 +93,13 @@ def tum_dir(tmp_path) -> Path:
 def test_tum_association_depth_scale_and_intrinsic(tum_dir):
     seq = load_sequence(tum_dir)
     assert len(seq) == 3  # 1.25 (no depth) and depth 3.0 (no colour) are not associated
-    np.testing.assert_array_equal(seq.timestamps, [1.0, 1.5, 2.0])  # colour timestamps
-    for i, t in enumerate([1.0, 1.5, 2.0]):
+    np.testing.assert_array_equal(seq.timestamps, [1.004, 1.512, 1.996])  # the depth images' timestamps
+    for i, (t_rgb, t) in enumerate(zip([1.0, 1.5, 2.0], [1.004, 1.512, 1.996])):
         frame = seq[i]
         assert frame.index == i and frame.timestamp == t
         assert frame.depth.dtype == np.float32 and frame.depth.shape == (TUM_H, TUM_W)
         # 16-bit PNG / 5000 = metres, exactly for these values
-        assert np.all(frame.depth == TUM_RAW[t] / 5000.0)
+        assert np.all(frame.depth == TUM_RAW[t_rgb] / 5000.0)
         assert frame.color.dtype == np.uint8 and frame.color.shape == (TUM_H, TUM_W, 3)
     # colour is RGB (written as BGR by OpenCV) and belongs to the associated file
     assert tuple(seq[0].color[0, 0]) == (10, 0, 255)
@@ -110,22 +111,45 @@ def test_tum_association_depth_scale_and_intrinsic(tum_dir):
     assert seq.image_size == (480, 640)
 
 
-def test_tum_groundtruth_is_interpolated_at_colour_timestamps(tum_dir):
+def test_tum_groundtruth_is_interpolated_at_depth_timestamps(tum_dir):
     seq = load_sequence(tum_dir)
     assert seq.gt_poses.shape == (3, 4, 4)
-    # frame timestamps 1.0, 1.5, 2.0 between gt 0.5 and 2.5: fractions 0.25, 0.5, 0.75
-    for pose, s in zip(seq.gt_poses, [0.25, 0.5, 0.75]):
+    # depth timestamps 1.004, 1.512, 1.996 (colour 1.0, 1.5, 2.0) between gt 0.5 and 2.5: fractions (t - 0.5) / 2
+    for pose, s in zip(seq.gt_poses, [0.252, 0.506, 0.748]):
         np.testing.assert_allclose(pose[:3, 3], s * np.array([1.0, 2.0, 3.0]), atol=1e-9)
         expected = Rotation.from_rotvec([0, 0, s * np.pi / 2]).as_matrix()  # slerp
         np.testing.assert_allclose(pose[:3, :3], expected, atol=1e-7)
         np.testing.assert_array_equal(pose[3], [0, 0, 0, 1])
 
 
-def test_tum_groundtruth_not_covering_frames_warns_and_drops_poses(tmp_path):
-    root = make_tum(tmp_path / "rgbd_dataset_freiburg1_x", gt_text([GT_POSE_A, GT_POSE_B], [1.2, 2.5]))
-    with pytest.warns(UserWarning, match="groundtruth.txt"):
+def test_tum_groundtruth_starting_just_after_the_first_frame_is_kept(tmp_path):
+    """TUM fr2/desk: the first frame is 19 microseconds before the first groundtruth line.
+    Within TUM's 20 ms tolerance the frame takes the first line's pose; no ground truth is lost."""
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg2_x", gt_text([GT_POSE_A, GT_POSE_B], [1.004019, 2.5]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
         seq = load_sequence(root)
-    assert seq.gt_poses is None
+    assert seq.gt_valid.all()
+    np.testing.assert_allclose(seq.gt_poses[0], GT_POSE_A, atol=1e-9)
+    assert "with GT poses)" in repr(seq)
+
+
+def test_tum_groundtruth_not_covering_frames_keeps_the_covered_ones(tmp_path):
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg1_x", gt_text([GT_POSE_A, GT_POSE_B], [1.2, 2.5]))
+    with pytest.warns(UserWarning, match=r"groundtruth.txt: 1 of 3 frames .* \(frames \[0\]\).* NaN"):
+        seq = load_sequence(root)
+    np.testing.assert_array_equal(seq.gt_valid, [False, True, True])
+    assert np.isnan(seq.gt_poses[0]).all() and np.isfinite(seq.gt_poses[1:]).all()
+    np.testing.assert_allclose(seq.gt_poses[1][:3, 3], (1.512 - 1.2) / 1.3 * np.array([1.0, 2.0, 3.0]), atol=1e-9)
+    assert "GT poses for 2 of them" in repr(seq)
+    # a sub-sequence keeps the rows of its frames; ATE leaves the frame without ground truth out
+    assert seq[1:].gt_valid.all() and not seq.select([0, 2]).gt_valid[0]
+    estimate = seq.gt_poses.copy()
+    estimate[0] = np.eye(4)
+    ate = absolute_trajectory_error(estimate, seq.gt_poses)
+    assert ate["frames"] == 2 and ate["rmse"] < 1e-9
+    with pytest.raises(PoseError, match="NaN"):  # an estimate must still be complete
+        absolute_trajectory_error(seq.gt_poses, estimate)
 
 
 def test_tum_unknown_camera_warns_default_and_explicit_intrinsic_wins(tmp_path):
@@ -147,13 +171,13 @@ def test_tum_trajectory_round_trip_through_groundtruth(tmp_path):
     # stamps -> the same poses (to the 7 written decimals)
     poses = np.stack([rigid([0.1, -0.2, 0.3], [0.5, -1.0, 2.0]), rigid([-0.4, 0.2, 1.0], [1.5, 0.25, -0.5]),
                       rigid([0.0, 0.0, -2.5], [0.0, 0.0, 1.0])])
-    stamps = np.array([1.0, 1.5, 2.0])
+    stamps = np.array(TUM_DEPTH[:3])  # the frames' (depth) timestamps
     root = make_tum(tmp_path / "rgbd_dataset_freiburg1_rt")
     write_tum_trajectory(root / "groundtruth.txt", poses, stamps)
     text = (root / "groundtruth.txt").read_text().splitlines()
     assert text[0].startswith("#") and len(text) == 4
     first = np.array(text[1].split(), dtype=float)
-    assert first[0] == 1.0 and np.allclose(first[1:4], [0.5, -1.0, 2.0])
+    assert first[0] == 1.004 and np.allclose(first[1:4], [0.5, -1.0, 2.0])
     # quaternion is x y z w (TUM order)
     q = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_quat()
     assert np.allclose(first[4:], q, atol=1e-6) or np.allclose(first[4:], -q, atol=1e-6)
@@ -201,10 +225,14 @@ def test_seven_scenes_reader(tmp_path):
     assert np.asarray(rgbd.depth)[240, 320] == pytest.approx(2.0)
 
 
-def test_seven_scenes_missing_pose_leaves_gt_out(tmp_path):
-    root, _ = make_seven_scenes(tmp_path / "kitchen")
+def test_seven_scenes_missing_or_lost_poses_leave_only_their_frames_out(tmp_path):
+    root, poses = make_seven_scenes(tmp_path / "kitchen", n=3)
     (root / "frame-000000.pose.txt").unlink()
-    assert load_sequence(root).gt_poses is None
+    (root / "frame-000002.pose.txt").write_text("inf inf inf inf\n" * 4)  # 7-Scenes' mark of lost tracking
+    with pytest.warns(UserWarning, match=r"2 of 3 frames .* \[0, 2\]"):
+        seq = load_sequence(root)
+    np.testing.assert_array_equal(seq.gt_valid, [False, True, False])
+    np.testing.assert_allclose(seq.gt_poses[1], poses[1], atol=1e-12)
 
 
 # -- tiny Open3D / Redwood folder ---------------------------------------------------------
@@ -428,7 +456,13 @@ def test_select_and_indexing():
     with pytest.raises(IndexError):
         seq[5]
     with pytest.raises(InputError, match="select"):
-        seq[1:3]
+        seq["1"]
+    sliced = seq[1:5:2]  # a slice is a sub-sequence, as select(range(1, 5, 2))
+    assert isinstance(sliced, RGBDSequence) and len(sliced) == 2
+    np.testing.assert_array_equal(sliced.gt_poses[:, 2, 3], [1, 3])
+    assert np.all(sliced[1].depth == 4.0) and len(seq[-2:]) == 2
+    with pytest.raises(InputError, match="no frames"):
+        seq[3:1]
     assert "5 frames" in repr(seq) and "8x6" in repr(seq)
 
 
@@ -469,8 +503,8 @@ def test_sequence_is_lazy():
 def test_load_sequence_reads_only_frame_0(tmp_path, monkeypatch):
     root, _ = make_redwood(tmp_path / "rw", n=4)
     read = []
-    original = sequence_module.read_image
-    monkeypatch.setattr(sequence_module, "read_image", lambda path, *a: read.append(Path(path).name) or original(path, *a))
+    original = images_module.read_image
+    monkeypatch.setattr(images_module, "read_image", lambda path, *a: read.append(Path(path).name) or original(path, *a))
     seq = load_sequence(root)
     assert sorted(read) == ["00000.png", "00000.png"]  # colour + depth of frame 0 (check_first_frame)
     read.clear()

@@ -11,9 +11,11 @@ from scipy.linalg import expm, logm
 
 from open3d_pnerf.data import RGBDSequence, load_sample, load_sequence
 from open3d_pnerf.errors import InputError, PoseError, TrackingError
+from open3d_pnerf.synthetic import camera_path, room_scene
 from open3d_pnerf.tracking import (
     absolute_trajectory_error,
     edge_jacobians,
+    pose_errors,
     pose_graph_covariances,
     track,
 )
@@ -228,23 +230,23 @@ def frames_of(seq: RGBDSequence) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(f.color, f.depth) for f in seq]
 
 
-def test_a_foreign_frame_is_detected_and_recovered(sample):
+def test_a_foreign_frame_is_named_and_the_next_frame_recovered(sample):
     frames = frames_of(sample)
-    color, depth = frames[5]
-    frames[5] = (np.ascontiguousarray(color[::-1, ::-1]), np.ascontiguousarray(depth[::-1, ::-1]))
+    scene = room_scene(0)  # a view of another scene, at the same intrinsic
+    view = scene.render(camera_path(scene, 40)[0], sample.intrinsic)
+    frames[5] = ((255 * view["color"]).astype(np.uint8), view["depth"])
     seq = RGBDSequence.from_rgbd_images(frames, sample.intrinsic, gt_poses=sample.gt_poses)
-    with pytest.warns(UserWarning, match=r"frame 5: .*pose guessed") as record:
+    with pytest.warns(UserWarning, match=r"no registration placed frames \[5\]"):
         traj = track(seq, progress=False)
-    assert 5 in traj.failed_frames and "[5, 6]" in str(record[0].message)
-    failed = [e for e in traj.edges if (e.source, e.target) == (4, 5)]
-    assert failed and not failed[0].success and failed[0].message
-    # frame 6 is re-registered from frame 4; frame 5 keeps a guess with a huge covariance
-    assert any(e.source == 4 and e.target == 6 and e.success for e in traj.edges)
+    assert traj.failed_frames == [5] and 6 in traj.recovered_frames
+    tries = [e for e in traj.edges if e.target == 5]
+    assert len(tries) >= 3 and not any(e.success for e in tries) and all(e.message for e in tries)
+    assert any(e.source == 4 and e.target == 6 and e.success for e in traj.edges)  # frame 6 from frame 4
     std = np.sqrt(np.diagonal(traj.covariances, axis1=1, axis2=2))
     assert np.degrees(std[5, :3]).min() > 10 and std[5, 3:].min() > 0.1  # the guess is uncertain
     assert np.all(std[5] > 5 * std[6])
     keep = [i for i in range(len(seq)) if i != 5]
-    assert absolute_trajectory_error(traj.poses[keep], sample.gt_poses[keep])["rmse"] < 2 * SAMPLE_ATE_BOUND_M
+    assert absolute_trajectory_error(traj.poses[keep], sample.gt_poses[keep])["rmse"] < SAMPLE_ATE_BOUND_M
 
 
 def test_all_failed_raises_tracking_error(sample):
@@ -269,11 +271,13 @@ def test_tum_fr1_xyz_full_pipeline_ate():
 @pytest.mark.slow
 @pytest.mark.data
 @pytest.mark.skipif(not SEVEN_SCENES_EVERY10.is_dir(), reason=f"no shared data at {SEVEN_SCENES_EVERY10}")
-def test_large_motion_failures_are_reported():
+def test_large_motion_is_recovered():
     seq = load_sequence(SEVEN_SCENES_EVERY10).select(range(4, 12))  # 7 cm / 4 deg between frames
-    with pytest.warns(UserWarning, match="odometry failed into frames"):
-        traj = track(seq, loop_closure=False, progress=False)
-    assert len(traj.failed_frames) >= 3
+    traj = track(seq, loop_closure=False, progress=False)
+    assert traj.failed_frames == [] and traj.recovered_frames  # a global registration placed a frame
+    errors = pose_errors(traj.poses, seq.gt_poses)
+    assert absolute_trajectory_error(traj.poses, seq.gt_poses)["rmse"] < 0.03
+    assert np.linalg.norm(errors[:, 3:], axis=1).max() < 0.05  # anchored at frame 0: drift included
 
 
 def test_keyframe_spacing_bounds_the_number_of_keyframes_on_long_sequences():

@@ -5,7 +5,7 @@
 """
 
 from .covariance import adjoint, edge_jacobians, pose_graph_covariances, pose_graph_hessian
-from .metrics import absolute_trajectory_error, rigid_alignment
+from .metrics import absolute_trajectory_error, consistency_of_errors, covariance_consistency, pose_errors, rigid_alignment
 from .odometry import FrameRegistration, OdometryOptions, PairResult
 from .tracker import DEFAULT_POINT_NOISE_M, track
 from .trajectory import Edge, Trajectory
@@ -18,10 +18,13 @@ __all__ = [
     "PairResult",
     "Trajectory",
     "absolute_trajectory_error",
+    "consistency_of_errors",
+    "covariance_consistency",
     "adjoint",
     "edge_jacobians",
     "pose_graph_covariances",
     "pose_graph_hessian",
+    "pose_errors",
     "rigid_alignment",
     "track",
 ]

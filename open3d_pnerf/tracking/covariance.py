@@ -57,11 +57,14 @@ def edge_jacobians(pose_source: np.ndarray, pose_target: np.ndarray) -> tuple[np
     return adjoint(np.linalg.inv(pose_target) @ pose_source), -np.eye(6)
 
 
-def pose_graph_hessian(pose_graph: o3d.pipelines.registration.PoseGraph) -> sp.csc_matrix:
+def pose_graph_hessian(pose_graph: o3d.pipelines.registration.PoseGraph,
+                       information: list[np.ndarray] | None = None) -> sp.csc_matrix:
     """(6N, 6N) sparse Gauss-Newton Hessian ``sum_e c_e J_e^T Lambda_e J_e`` of the graph.
 
-    Each edge is weighted by its ``confidence`` (Open3D's line-process weight: 1 for certain
-    edges, in (0, 1] for uncertain ones after ``global_optimization``).
+    Lambda_e: the edge's ``information`` (Open3D's), or information[e] when given (one (6, 6)
+    per edge, in the graph's order). Each edge is weighted by its ``confidence`` (Open3D's
+    line-process weight: 1 for certain edges, in (0, 1] for uncertain ones after
+    ``global_optimization``).
     """
     n = len(pose_graph.nodes)
     poses = np.stack([np.asarray(node.pose, dtype=np.float64) for node in pose_graph.nodes])
@@ -70,7 +73,7 @@ def pose_graph_hessian(pose_graph: o3d.pipelines.registration.PoseGraph) -> sp.c
         s, t = edge.source_node_id, edge.target_node_id
         if not (0 <= s < n and 0 <= t < n) or s == t:
             raise InputError(f"pose_graph.edges[{k}] joins nodes {s} -> {t}; need two distinct nodes of {n}")
-        info = edge.confidence * np.asarray(edge.information, dtype=np.float64)
+        info = edge.confidence * np.asarray(edge.information if information is None else information[k], np.float64)
         jac = dict(zip((s, t), edge_jacobians(poses[s], poses[t])))
         for a in (s, t):
             for b in (s, t):
@@ -87,14 +90,16 @@ def pose_graph_hessian(pose_graph: o3d.pipelines.registration.PoseGraph) -> sp.c
 
 
 def pose_graph_covariances(
-    pose_graph: o3d.pipelines.registration.PoseGraph, point_noise_m: float, reference: int = 0
+    pose_graph: o3d.pipelines.registration.PoseGraph, point_noise_m: float = 1.0, reference: int = 0,
+    information: list[np.ndarray] | None = None,
 ) -> np.ndarray:
     """(N, 6, 6) float64 covariances of the node poses, [rotation (rad^2), translation (m^2)].
 
     The 6x6 diagonal blocks of ``point_noise_m^2 * H^-1`` with the reference node held fixed
-    (its covariance is zero). ``H`` is :func:`pose_graph_hessian`; the perturbation is
-    ``T exp(xi)`` (camera frame). point_noise_m: the noise of one correspondence (m) that
-    scales Open3D's unscaled information matrices. Every node must be connected to the
+    (its covariance is zero). ``H`` is :func:`pose_graph_hessian` of the edges' `information`
+    (one (6, 6) per edge, the inverse of each edge's covariance; default: Open3D's unscaled
+    matrices, which point_noise_m, the noise of one correspondence (m), then scales); the
+    perturbation is ``T exp(xi)`` (camera frame). Every node must be connected to the
     reference through edges, otherwise InputError names the unconnected nodes.
     """
     n = len(pose_graph.nodes)
@@ -102,7 +107,9 @@ def pose_graph_covariances(
         raise InputError(f"point_noise_m must be > 0 metres, got {point_noise_m!r}")
     if not 0 <= reference < n:
         raise InputError(f"reference must be a node index in [0, {n}), got {reference}")
-    hessian = pose_graph_hessian(pose_graph)
+    if information is not None and len(information) != len(pose_graph.edges):
+        raise InputError(f"information has {len(information)} matrices for {len(pose_graph.edges)} edges")
+    hessian = pose_graph_hessian(pose_graph, information)
     _check_connected(pose_graph, n, reference)
     covariances = np.zeros((n, 6, 6))
     free = np.array([i for i in range(n) if i != reference], dtype=int)

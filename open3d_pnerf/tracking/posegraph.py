@@ -30,19 +30,6 @@ def add_edge(
     )
 
 
-def prior_information(
-    point_noise_m: float, sigma_rotation_rad: float, sigma_translation_m: float
-) -> np.ndarray:
-    """(6, 6) information whose covariance ``point_noise_m^2 * inv(information)`` is diagonal
-    with the given standard deviations (rad for rotation, m for translation).
-
-    Used for the guessed edge of a frame whose registration failed: it keeps the graph
-    connected while giving that frame a huge covariance.
-    """
-    sigmas = np.array([sigma_rotation_rad] * 3 + [sigma_translation_m] * 3)
-    return np.diag((point_noise_m / sigmas) ** 2)
-
-
 def loop_closure_candidates(
     poses: np.ndarray,
     keyframes: list[int],

@@ -17,6 +17,8 @@ class Edge:
     checks (and, for loops, survived global optimisation). fitness / inlier_rmse: Open3D's
     odometry result. overlap: fraction of the source's valid depth pixels with a
     correspondence after alignment. correspondences: entry [5, 5] of the information.
+    residual_rms: point-to-plane residual after alignment (m); init: the initial guess it
+    started from ("constant velocity", "zero motion", "global", "from frame j", "loop").
     """
 
     source: int
@@ -28,6 +30,8 @@ class Edge:
     overlap: float
     correspondences: int
     message: str = ""
+    residual_rms: float = float("nan")
+    init: str = ""
 
 
 @dataclasses.dataclass
@@ -39,8 +43,12 @@ class Trajectory:
     perturbation ``pose @ exp(xi)`` (xi in the camera frame); zero for frame 0.
     pose_graph: the optimised ``o3d.pipelines.registration.PoseGraph`` (node i = frame i).
     edges: every attempted registration (see :class:`Edge`), including failed ones.
-    failed_frames: frames whose odometry from the previous frame failed; each got a
-    fallback (registration from an earlier frame, else a guessed pose with a huge covariance).
+    failed_frames: frames that no registration placed: their pose is a guess (the motion so far,
+    continued) with a covariance as wide as the plausible motion, and so are the covariances of
+    the frames chained through them. flagged_frames: frames placed by a registration whose
+    residual stayed high against the sequence's others (kept, with the large covariance its
+    residuals give). recovered_frames: frames whose first registration (from the constant-velocity
+    guess) failed or looked suspicious and that another initial guess placed.
     timestamps: (N,) float64 seconds, from the sequence.
     """
 
@@ -50,6 +58,8 @@ class Trajectory:
     edges: list[Edge]
     failed_frames: list[int]
     timestamps: np.ndarray
+    flagged_frames: list[int] = dataclasses.field(default_factory=list)
+    recovered_frames: list[int] = dataclasses.field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -58,5 +68,6 @@ class Trajectory:
         loops = sum(e.kind == "loop" and e.success for e in self.edges)
         return (
             f"Trajectory({len(self)} poses, {loops} loop closures, "
-            f"failed frames {self.failed_frames})"
+            f"failed frames {self.failed_frames}, flagged frames {self.flagged_frames}, "
+            f"recovered frames {self.recovered_frames})"
         )
