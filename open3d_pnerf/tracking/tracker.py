@@ -7,6 +7,7 @@ import warnings
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
 from ..data.sequence import RGBDSequence, check_sequence
@@ -56,7 +57,9 @@ def track(
        point clouds (FPFH + RANSAC, :func:`~open3d_pnerf.tracking.odometry.global_registration`),
        and the last frame registered before i-1; of the pose most passing candidates agree on,
        the one with the lowest residual wins. When the predicted motion is fast (``odometry.search_all_above_m`` /
-       ``search_all_above_deg``) every guess is tried, as a wrong minimum need not stand out. A frame that still fits badly is kept and flagged; one that no candidate places
+       ``search_all_above_deg``) every guess is tried, as a wrong minimum need not stand out.
+       A frame that still fits badly, or whose starts reached different poses (its covariance
+       then grows by their disagreement), is kept and flagged; one that no candidate places
        keeps the constant-velocity guess with a covariance spanning the plausible-motion
        limits, and a warning names both.
     2. Loop closures (``loop_closure=True``): every ``keyframe_every``-th frame is a
@@ -235,7 +238,7 @@ class _Run:
                 passed.append((result, source))
                 if not self.suspicious(result) and not search_all:
                     break
-        best = self.consensus(passed)
+        best, recovered = self.consensus(passed)
         if best is None:  # nothing placed it: continue the motion, with a covariance to match
             self.failed_frames.append(i)
             pose, source, uncertain = self.predicted_pose(i), i - 1, True
@@ -244,7 +247,7 @@ class _Run:
             information = np.linalg.inv(covariance)  # weak next to the registrations' in the optimisation
         else:
             result, source = best
-            if result.init != "constant velocity":
+            if recovered:
                 self.recovered_frames.append(i)
             if self.suspicious(result):
                 self.flagged_frames.append(i)
@@ -252,21 +255,44 @@ class _Run:
                 self.residuals.append(result.residual_rms)
             self.registered.append(i)
             transformation, information, uncertain = result.transformation, result.information, False
-            covariance = result.covariance
             pose = self.poses[source] @ np.linalg.inv(transformation)
+            spread = self.disagreement(pose, source, transformation, passed)
+            covariance = result.covariance + spread
+            if spread.any() and i not in self.flagged_frames:
+                self.flagged_frames.append(i)
         self.poses.append(pose)
         self.graph.nodes.append(o3d.pipelines.registration.PoseGraphNode(pose))
         add_edge(self.graph, source, i, transformation, information, uncertain)
         self.covariances[source, i] = covariance
 
-    def consensus(self, passed: list[tuple[PairResult, int]]) -> tuple[PairResult, int] | None:
-        """The (registration, source) to keep among those that passed: of the pose that most of
-        them agree on (within inlier_distance_m and 1 degree), the one with the lowest residual.
-        Agreement first: guesses that converge to one pose from different starts outvote a
-        lone wrong minimum, whose residual can be a few percent lower (the synthetic room at
-        40 frames per circuit, seed 3, frame 33: 6.01 mm 28 cm off against 6.42 mm)."""
+    def disagreement(self, pose: np.ndarray, source: int, transformation: np.ndarray,
+                     passed: list[tuple[PairResult, int]]) -> np.ndarray:
+        """(6, 6) sum of xi xi^T over the passing candidates that reached another pose than the
+        kept one: xi, the left perturbation [rotation, translation] of the kept edge
+        (source -> i) that gives the other candidate's pose. Added to the edge's covariance, so
+        that when starts disagree the pose is uncertain by as much as they disagree (a choice
+        between minima that the residuals cannot make reliably; zeros when all agree)."""
+        extra = np.zeros((6, 6))
+        for result, other_source in passed:
+            other = self.poses[other_source] @ np.linalg.inv(result.transformation)
+            moved_m, turned_deg = motion(np.linalg.inv(pose) @ other)
+            if moved_m < self.options.inlier_distance_m and turned_deg < 1.0:
+                continue
+            step = np.linalg.inv(other) @ self.poses[source] @ np.linalg.inv(transformation)  # exp(xi)
+            xi = np.concatenate([Rotation.from_matrix(step[:3, :3]).as_rotvec(), step[:3, 3]])
+            extra += np.outer(xi, xi)
+        return extra
+
+    def consensus(self, passed: list[tuple[PairResult, int]]) -> tuple[tuple[PairResult, int] | None, bool]:
+        """The (registration, source) to keep among those that passed, and whether it is a
+        recovery (the constant-velocity start did not pass or reached another pose). Kept: of
+        the pose that most of them agree on (within inlier_distance_m and 1 degree), the one with
+        the lowest residual. Agreement first: guesses that converge to one pose from different
+        starts outvote a lone wrong minimum, whose residual can be a few percent lower (the
+        synthetic room at 40 frames per circuit, seed 3, frame 33: 6.01 mm 28 cm off against
+        6.42 mm)."""
         if not passed:
-            return None
+            return None, False
         poses = [self.poses[source] @ np.linalg.inv(result.transformation) for result, source in passed]
 
         def agree(a: np.ndarray, b: np.ndarray) -> bool:
@@ -274,7 +300,10 @@ class _Run:
             return moved_m < self.options.inlier_distance_m and turned_deg < 1.0
 
         votes = [sum(agree(p, q) for q in poses) for p in poses]
-        return min(zip(passed, votes), key=lambda pv: (-pv[1], pv[0][0].residual_rms))[0]
+        k = min(range(len(passed)), key=lambda j: (-votes[j], passed[j][0].residual_rms))
+        recovered = not any(result.init == "constant velocity" and agree(poses[k], pose)
+                            for (result, _), pose in zip(passed, poses))
+        return passed[k], recovered
 
     def close_loop(self, s: int, t: int, options: OdometryOptions) -> None:
         """Register keyframe s to keyframe t; add an uncertain edge when it passes every check."""
@@ -311,6 +340,7 @@ def _warn_failures(run: _Run, name: str) -> None:
                      "with covariances as wide as the plausible motion (and so have the frames chained through them)")
     if run.flagged_frames:
         parts.append(f"frames {run.flagged_frames[:20]}{' ...' if len(run.flagged_frames) > 20 else ''} fit their "
-                     "neighbours poorly (residual far above the sequence's others): kept, with the large covariances "
-                     "their residuals give")
+                     "neighbours poorly (residual far above the sequence's others) or were placed differently from "
+                     "different starts: kept, with covariances as large as their residuals and the starts' "
+                     "disagreement give")
     warnings.warn(f"track({name!r}): " + "; ".join(parts), stacklevel=3)

@@ -46,9 +46,10 @@ class Trajectory:
     failed_frames: frames that no registration placed: their pose is a guess (the motion so far,
     continued) with a covariance as wide as the plausible motion, and so are the covariances of
     the frames chained through them. flagged_frames: frames placed by a registration whose
-    residual stayed high against the sequence's others (kept, with the large covariance its
-    residuals give). recovered_frames: frames whose first registration (from the constant-velocity
-    guess) failed or looked suspicious and that another initial guess placed.
+    residual stayed high against the sequence's others, or whose initial guesses reached different
+    poses (kept, with the covariance their residuals and that disagreement give).
+    recovered_frames: frames whose registration from the constant-velocity guess failed, looked
+    suspicious or was outvoted, and that another initial guess placed.
     timestamps: (N,) float64 seconds, from the sequence.
     """
 
