@@ -207,7 +207,7 @@ def downstream_section(previous: PreviousRelease, cases) -> dict:
         out[f"synthetic {n} frames seed {seed}"] = r = {
             "new": target_coverage(data, traj.poses, traj.covariances),
             "previous": target_coverage(data, saved["poses"], saved["covariances"]),
-            "exact poses": target_coverage(data, data.sequence.gt_poses @ np.linalg.inv(data.sequence.gt_poses[0]),
+            "exact poses": target_coverage(data, np.linalg.inv(data.sequence.gt_poses[0]) @ data.sequence.gt_poses,
                                            np.zeros((n, 6, 6)))}
         print("downstream", n, seed, r, flush=True)
     return out
