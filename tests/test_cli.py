@@ -172,8 +172,10 @@ def test_the_cli_and_the_python_api_track_the_same_data_the_same_way(tmp_path):
     assert cli.main(args) == 0
     config = pn.ReconstructionConfig.preset("test", max_steps=2, progress=False, **{"tracking.loop_closure": False})
     recon = pn.reconstruct(pn.load_sample().select(range(6)), config)
-    np.testing.assert_array_equal(np.load(out / "poses.npy"), recon.poses)
-    np.testing.assert_array_equal(np.load(out / "covariances.npy"), recon.covariances)
+    # equal up to the summation order of Open3D's multi-threaded odometry (its last bits vary from run to
+    # run; the refinement after it then ends a few nanometres apart)
+    np.testing.assert_allclose(np.load(out / "poses.npy"), recon.poses, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(np.load(out / "covariances.npy"), recon.covariances, rtol=1e-4, atol=1e-15)
     # the setting reached both: with the default loop closures the covariances differ
     default = pn.track(pn.load_sample().select(range(6)), progress=False)
     assert not np.allclose(recon.covariances, default.covariances)
