@@ -1,5 +1,6 @@
-"""Atomic file writes: a crash or Ctrl-C never leaves a half-written output behind."""
+"""Atomic file writes (a crash or Ctrl-C never leaves a half-written output behind), and checked JSON reads."""
 
+import json
 import os
 from pathlib import Path
 from typing import Callable, Mapping
@@ -40,3 +41,15 @@ def atomic_write_all(writes: Mapping[object, Writer]) -> None:
     finally:
         for tmp in temps.values():
             tmp.unlink(missing_ok=True)
+
+
+def read_json_object(path, error: type[Exception]) -> dict:
+    """The JSON object in file `path`; raises `error` naming the file if it is not valid JSON or
+    not an object."""
+    try:
+        meta = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: corrupt JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise error(f"{path}: expected a JSON object, got {type(meta).__name__}")
+    return meta

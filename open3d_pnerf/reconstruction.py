@@ -19,7 +19,7 @@ import open3d as o3d
 import torch
 from tqdm.auto import tqdm
 
-from ._files import atomic_write_all
+from ._files import atomic_write_all, read_json_object
 from .camera import camera_pose, check_intrinsic, intrinsic_matrix, pinhole, pose_to_extrinsic, scale_intrinsic
 from .config import ReconstructionConfig
 from .data.nerfstudio import write_nerfstudio
@@ -335,12 +335,7 @@ def _read_meta(path: Path) -> dict:
     """The JSON object of a saved reconstruction, checked for its format version and keys."""
     if not path.is_file():
         raise CheckpointError(f"{path.parent}: not a saved reconstruction (reconstruction.json missing)")
-    try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CheckpointError(f"{path}: corrupt JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise CheckpointError(f"{path}: expected a JSON object, got {type(meta).__name__}")
+    meta = read_json_object(path, CheckpointError)
     if meta.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"{path}: format version {meta.get('format_version')!r}, this library reads {FORMAT_VERSION}")
     missing = [k for k in META_KEYS if k not in meta]

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from .._files import atomic_write
+from .._files import atomic_write, read_json_object
 from ..camera import check_poses, intrinsic_matrix, pinhole
 from ..errors import DatasetError, InputError, PoseError
 from .images import read_color, read_image
@@ -60,7 +60,7 @@ def read_nerfstudio(path: Path, intrinsic=None, depth_scale: float | None = None
     other formats).
     """
     file = path / TRANSFORMS
-    meta = _read_json(file)
+    meta = read_json_object(file, DatasetError)
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) for f in frames):
         raise DatasetError(f"{file}: 'frames' must be a non-empty list of objects")
@@ -162,16 +162,6 @@ def write_nerfstudio(sequence: RGBDSequence, path, poses: np.ndarray | None = No
 
 
 # -- reading helpers ----------------------------------------------------------------------------------
-def _read_json(file: Path) -> dict:
-    try:
-        meta = json.loads(file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{file}: not valid JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise DatasetError(f"{file}: expected a JSON object, got {type(meta).__name__}")
-    return meta
-
-
 def _camera(meta: dict, frames: list[dict], file: Path) -> tuple[dict, np.ndarray]:
     """The one camera of all frames: {fl_x, fl_y, cx, cy, w, h} and distortion (5,) in OpenCV order."""
     model = meta.get("camera_model", "OPENCV")
