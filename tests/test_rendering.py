@@ -419,3 +419,40 @@ def test_render_rays_is_deterministic_without_jitter_and_differentiable():
     (a.color.sum() + a.depth.sum()).backward()
     assert lin.weight.grad is not None and torch.isfinite(lin.weight.grad).all()
     assert lin.weight.grad.abs().sum() > 0
+
+
+class TwoSlabField:
+    """Two half-transparent slabs along z (0.1 thick each, at z0 and z1) of density `value`."""
+
+    def __init__(self, z0: float, z1: float, value: float = 4.0):
+        self.z0, self.z1, self.value = z0, z1, value
+
+    def geometry(self, x):
+        z = x[:, 2]
+        inside = ((z >= self.z0) & (z <= self.z0 + 0.1)) | ((z >= self.z1) & (z <= self.z1 + 0.1))
+        return torch.where(inside, self.value, 0.0), torch.zeros(x.shape[0], 1)
+
+    def color(self, features, d):
+        return torch.full((features.shape[0], 3), 0.5)
+
+
+def test_render_rays_fine_samples_of_target_rays_cover_the_whole_coarse_pdf():
+    """Rays with a depth target draw their n_fine importance samples over the whole coarse PDF
+    (here two equal-ish modes, the second behind the target), as rays without one do; not the
+    front part of a longer draw (which never reached the second mode)."""
+    field = TwoSlabField(1.2, 2.4, value=3.0)  # each slab stops ~26% of the light
+    rays = rays_along_z(64, near=1.0, far=3.0)
+    sampling = SamplingConfig(n_coarse=32, n_fine=24, n_guided=16)
+    mean, sigma = torch.full((64,), 1.25), torch.full((64,), 0.01)
+    fine, _ = render_rays(field, rays, sampling, mean, sigma, torch.Generator().manual_seed(3))
+    coarse_t = stratified(rays, sampling.n_coarse, torch.Generator().manual_seed(3))
+    extra = fine.t[~torch.isin(fine.t, coarse_t)].view(64, -1)  # importance + guided samples
+    assert extra.shape[1] == sampling.n_fine + sampling.n_guided
+    behind = ((extra >= 2.35) & (extra <= 2.55)).sum(1).float()
+    # the second mode holds ~40% of the coarse weight: ~10 of the 24 importance samples land there
+    assert behind.mean() > 6, behind.mean()
+    # rays without a target keep n_fine + n_guided importance samples
+    fine_nt, _ = render_rays(field, rays, sampling, torch.full((64,), float("nan")), sigma,
+                             torch.Generator().manual_seed(3))
+    extra_nt = fine_nt.t[~torch.isin(fine_nt.t, coarse_t)].view(64, -1)
+    assert ((extra_nt >= 2.35) & (extra_nt <= 2.55)).sum(1).float().mean() > 10

@@ -91,14 +91,17 @@ def render_rays(
         sigma_c = sigma_c.view_as(t_c)
     with record_function("pnerf.resample"):
         n_extra = sampling.n_guided
-        t_f = importance(e_c, render_weights(sigma_c.detach(), e_c), sampling.n_fine + n_extra, generator, jitter)
+        w_c = render_weights(sigma_c.detach(), e_c)
+        t_f = importance(e_c, w_c, sampling.n_fine + n_extra, generator, jitter)
         if target_mean is not None and n_extra > 0:
+            # rays with a target: n_fine importance samples drawn on their own over the whole
+            # coarse PDF (not the front part of the longer draw), then the guided ones
             has = torch.isfinite(target_mean)
             guided = depth_guided(
                 rays, torch.nan_to_num(target_mean), torch.nan_to_num(target_sigma, nan=1.0), n_extra, generator
             )
-            t_f = torch.cat([t_f[:, : sampling.n_fine], torch.where(has[:, None], guided, t_f[:, sampling.n_fine :])],
-                            1)
+            t_own = torch.cat([importance(e_c, w_c, sampling.n_fine, generator, jitter), guided], 1)
+            t_f = torch.where(has[:, None], t_own, t_f)
     with record_function("pnerf.fine_field"):
         t, order, sigma, features = _merged_geometry(field, rays, t_c, sigma_c, features_c, t_f)
         dirs = rays.directions[:, None, :].expand(*t.shape, 3).reshape(-1, 3)
