@@ -123,9 +123,10 @@ class ObjectiveConfig:
     weights: LossWeights = dataclasses.field(default_factory=LossWeights)
     """Loss weights Kc, Kd, Kz (and the DS-NeRF weight)."""
     depth_weight_final_factor: float = 0.01
-    """The PNeRF depth weights Kd and Kz decay exponentially over training to this fraction
-    (1.0 = constant): geometry first, colour refined late (0.01 was chosen over 0.1 in
-    exploratory runs on TUM fr1/xyz at the `fast` preset: same depth error)."""
+    """The depth terms' weights (Kd, Kz, and the DS-NeRF weight, so compared losses share one
+    schedule) decay exponentially over training to this fraction (1.0 = constant): geometry
+    first, colour refined late (0.01 was chosen over 0.1 in exploratory runs on TUM fr1/xyz at
+    the `fast` preset: same depth error)."""
     coarse_terms: bool = True
     """Add the coarse-render terms (the paper's coarse + fine losses)."""
     pose_prior_weight: float = 1e-3

@@ -77,10 +77,11 @@ class Trainer:
             group["lr"] = lr * decay
 
     def loss_weights(self) -> LossWeights:
-        """objective.weights with Kd and Kz decayed by depth_weight_final_factor ** progress."""
+        """objective.weights with every depth term's weight (Kd, Kz and the DS-NeRF one: the same
+        schedule for every loss compared) decayed by depth_weight_final_factor ** progress."""
         objective = self.config.objective
         w, f = objective.weights, objective.depth_weight_final_factor ** self._progress_fraction()
-        return dataclasses.replace(w, density=w.density * f, depth=w.depth * f)
+        return dataclasses.replace(w, density=w.density * f, depth=w.depth * f, dsnerf=w.dsnerf * f)
 
     def _done(self) -> bool:
         if self.step >= self.config.max_steps:
