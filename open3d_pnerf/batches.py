@@ -16,9 +16,11 @@ from .targets import DepthTargets
 
 @dataclasses.dataclass
 class RayBatch:
-    """R training pixels with what they saw: u, v (R,) pixel coordinates (float, centres at
-    integers), frames (R,) the index of each pixel's training frame, rgb (R, 3) in [0, 1],
-    depth target mean and sigma (R,) in ray-distance metres (NaN = none)."""
+    """R training rays with what they saw: u, v (R,) image coordinates (float, pixel centres at
+    integers; off-centre for sparse targets seen between centres), frames (R,) the index of
+    each ray's training frame, rgb (R, 3) in [0, 1] (bilinear between pixels off the centres),
+    depth target mean and sigma (R,) in ray-distance metres (NaN = none), and weight (R,) of
+    each target's loss terms (1 where the targets have no weights)."""
 
     u: torch.Tensor
     v: torch.Tensor
@@ -26,6 +28,7 @@ class RayBatch:
     rgb: torch.Tensor
     mean: torch.Tensor
     sigma: torch.Tensor
+    weight: torch.Tensor
 
     def __len__(self) -> int:
         return len(self.u)
@@ -35,28 +38,43 @@ class RayBatch:
 
 
 class RayBatcher:
-    """Draws random training pixels from a bounded cache of decoded frames.
+    """Draws random training rays from a bounded cache of decoded frames.
 
     sequence: the training frames at training resolution; targets: their DepthTargets (same
     resolution) or None. At most `cache_frames` frames are decoded at a time, into slots of
     preallocated tensors; with more frames the cache rotates one frame every `refresh_every`
     steps, in a seeded order, so memory stays bounded on long sequences.
+    target_share: the share of each batch drawn among the cached frames' target pixels (the
+    rest uniformly among all pixels) when targets are sparser than that; with denser targets
+    (e.g. RGB-D) the uniform draw already holds that share and every ray is drawn uniformly.
+    Sparse targets (SfM points) cover ~1% of the pixels: a uniform batch of 512 rays holds
+    ~5 of them.
     """
 
     def __init__(self, sequence: RGBDSequence, targets: DepthTargets | None, device, seed: int,
-                 cache_frames: int = 64, refresh_every: int = 4):
+                 cache_frames: int = 64, refresh_every: int = 4, target_share: float = 0.0):
+        if not 0 <= target_share < 1:
+            raise ValueError(f"target_share must be in [0, 1), got {target_share!r}")
         self.sequence, self.targets, self.device = sequence, targets, device
         self.height, self.width = sequence.image_size
+        self.K = np.asarray(sequence.K, np.float64)
         self.norms = torch.as_tensor(ray_norms(sequence.K, self.height, self.width), device=device).view(-1)
         self.capacity = min(cache_frames, len(sequence))
         self.refresh_every = refresh_every
+        self.target_share = target_share
         self.order_rng = np.random.default_rng(seed)
         self.queue: list[int] = []
         self.cache: OrderedDict[int, int] = OrderedDict()  # frame -> slot, oldest first
         pixels = self.height * self.width
         self.colors = torch.empty(self.capacity, pixels, 3, device=device)
-        self.means = torch.empty(self.capacity, pixels, device=device) if targets is not None else None
-        self.sigmas = torch.empty(self.capacity, pixels, device=device) if targets is not None else None
+        has = targets is not None
+        self.means = torch.empty(self.capacity, pixels, device=device) if has else None
+        self.sigmas = torch.empty(self.capacity, pixels, device=device) if has else None
+        self.weights = torch.empty(self.capacity, pixels, device=device) if has and targets.weight is not None else None
+        self.offsets = (torch.empty(self.capacity, pixels, 2, device=device)
+                        if has and targets.offset is not None else None)
+        self.target_pixels: list[torch.Tensor] = [torch.empty(0, dtype=torch.long)] * self.capacity
+        self._target_index: torch.Tensor | None = None  # slot * pixels + pixel of every cached target
         self.draws = 0
         while len(self.cache) < self.capacity:
             self._load(self._next_frame(), len(self.cache))
@@ -72,32 +90,90 @@ class RayBatcher:
         self.colors[slot] = torch.as_tensor(self.sequence.color_on_depth_grid(frame.color), device=self.device
                                             ).float().div_(255).view(-1, 3)
         if self.targets is not None:
-            valid = torch.as_tensor(np.asarray(self.targets.valid[i]), device=self.device).view(-1)
-            mean = torch.as_tensor(np.asarray(self.targets.mean[i]), device=self.device).view(-1) * self.norms
+            t = self.targets
+            valid = torch.as_tensor(np.asarray(t.valid[i]), device=self.device).view(-1)
+            norms = self.norms
+            if self.offsets is not None:  # metres along the ray per metre of depth, at the exact spots
+                self.offsets[slot] = torch.as_tensor(np.asarray(t.offset[i]), device=self.device).view(-1, 2)
+                u, v = self._pixel_grid()
+                norms = self._norms_at(u + self.offsets[slot, :, 0], v + self.offsets[slot, :, 1])
+            mean = torch.as_tensor(np.asarray(t.mean[i]), device=self.device).view(-1) * norms
             self.means[slot] = torch.where(valid, mean, torch.full_like(mean, float("nan")))
-            self.sigmas[slot] = torch.as_tensor(np.asarray(self.targets.sigma[i]), device=self.device).view(-1) * self.norms
+            self.sigmas[slot] = torch.as_tensor(np.asarray(t.sigma[i]), device=self.device).view(-1) * norms
+            if self.weights is not None:
+                self.weights[slot] = torch.as_tensor(np.asarray(t.weight[i]), device=self.device).view(-1)
+            self.target_pixels[slot] = valid.nonzero()[:, 0].cpu()
+            self._target_index = None
         self.cache[i] = slot
 
+    def _pixel_grid(self) -> tuple[torch.Tensor, torch.Tensor]:
+        pix = torch.arange(self.height * self.width, device=self.device)
+        return (pix % self.width).float(), (pix // self.width).float()
+
+    def _norms_at(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """||K^-1 [u, v, 1]|| at image coordinates u, v."""
+        x = (u - self.K[0, 2]) / self.K[0, 0]
+        y = (v - self.K[1, 2]) / self.K[1, 1]
+        return torch.sqrt(x * x + y * y + 1)
+
+    def _draw_target_pixels(self) -> bool:
+        """Whether batches draw target_share of their rays among the target pixels: targets
+        cover less than that share of the cached pixels."""
+        if self.targets is None or self.target_share == 0:
+            return False
+        covered = sum(len(p) for p in self.target_pixels[: len(self.cache)])
+        return 0 < covered < self.target_share * len(self.cache) * self.height * self.width
+
     def sample(self, n: int, generator: torch.Generator) -> RayBatch:
-        """n random pixels of the cached frames, with their colours, depth targets and frames."""
+        """n random rays of the cached frames, with their colours, depth targets and frames."""
         self.draws += 1
         if len(self.cache) < len(self.sequence) and self.draws % self.refresh_every == 0:
             _, slot = self.cache.popitem(last=False)
             self._load(self._next_frame(), slot)
+        pixels = self.height * self.width
+        n_target = round(self.target_share * n) if self._draw_target_pixels() else 0
         ids = list(self.cache)
-        which = torch.randint(len(ids), (n,), generator=generator).to(self.device)  # drawn on the CPU generator
-        pix = torch.randint(self.height * self.width, (n,), generator=generator).to(self.device)
-        frames = torch.tensor(ids, device=self.device)[which]
-        slots = torch.tensor(list(self.cache.values()), device=self.device)[which]
-        rgb = self.colors[slots, pix]
+        which = torch.randint(len(ids), (n - n_target,), generator=generator)  # drawn on the CPU generator
+        pix = torch.randint(pixels, (n - n_target,), generator=generator)
+        slot_of = torch.tensor(list(self.cache.values()))
+        slots = slot_of[which]
+        if n_target:
+            if self._target_index is None:
+                self._target_index = torch.cat([s * pixels + self.target_pixels[s] for s in slot_of.tolist()])
+            picked = self._target_index[torch.randint(len(self._target_index), (n_target,), generator=generator)]
+            slot_frame = torch.empty(self.capacity, dtype=torch.long)
+            slot_frame[slot_of] = torch.tensor(ids)
+            slots, pix = torch.cat([slots, picked // pixels]), torch.cat([pix, picked % pixels])
+            frames = slot_frame[slots]
+        else:
+            frames = torch.tensor(ids)[which]
+        slots, pix, frames = slots.to(self.device), pix.to(self.device), frames.to(self.device)
+        u = (pix % self.width).float()
+        v = (pix // self.width).float()
+        if self.offsets is not None:
+            off = self.offsets[slots, pix]
+            u, v = u + off[:, 0], v + off[:, 1]
+            rgb = self._bilinear(slots, u, v)
+        else:
+            rgb = self.colors[slots, pix]
         if self.means is None:
             mean = torch.full((n,), float("nan"), device=self.device)
             sigma = mean.clone()
         else:
             mean, sigma = self.means[slots, pix], self.sigmas[slots, pix]
-        u = (pix % self.width).float().to(self.device)
-        v = (pix // self.width).float().to(self.device)
-        return RayBatch(u, v, frames, rgb, mean, sigma)
+        weight = self.weights[slots, pix] if self.weights is not None else torch.ones(n, device=self.device)
+        return RayBatch(u, v, frames, rgb, mean, sigma, weight)
+
+    def _bilinear(self, slots: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """(R, 3) colours of the cached frames in `slots` at image coordinates u, v (R,), bilinear
+        between the pixel centres (clamped at the image border)."""
+        u = u.clamp(0, self.width - 1)
+        v = v.clamp(0, self.height - 1)
+        u0 = u.floor().clamp(max=self.width - 2).long()
+        v0 = v.floor().clamp(max=self.height - 2).long()
+        fu, fv = (u - u0)[:, None], (v - v0)[:, None]
+        at = lambda du, dv: self.colors[slots, (v0 + dv) * self.width + u0 + du]  # noqa: E731
+        return (at(0, 0) * (1 - fu) + at(1, 0) * fu) * (1 - fv) + (at(0, 1) * (1 - fu) + at(1, 1) * fu) * fv
 
     def state(self) -> dict:
         """Plain ints/dicts only, so checkpoints load with torch.load(weights_only=True)."""

@@ -187,10 +187,13 @@ def backproject(depth: np.ndarray, K: np.ndarray, pose: np.ndarray | None = None
     return pts, flat
 
 
-def project(K, points):
-    """Pixel coordinates (u, v), each (...), of camera-frame points (..., 3) with z > 0."""
-    x, y, z = points[..., 0], points[..., 1], points[..., 2]
-    return x / z * K[0, 0] + K[0, 2], y / z * K[1, 1] + K[1, 2]
+def project(K, points, radial: tuple[float, float] = (0.0, 0.0)):
+    """Pixel coordinates (u, v), each (...), of camera-frame points (..., 3) with z > 0;
+    radial: (k1, k2) distortion of the normalised coordinates by 1 + k1 r^2 + k2 r^4."""
+    x, y = points[..., 0] / points[..., 2], points[..., 1] / points[..., 2]
+    r2 = x * x + y * y
+    f = 1 + radial[0] * r2 + radial[1] * r2 * r2
+    return x * f * K[0, 0] + K[0, 2], y * f * K[1, 1] + K[1, 2]
 
 
 def nearest_pixels(K: np.ndarray, points: np.ndarray, height: int, width: int):

@@ -157,12 +157,17 @@ class OptimizerConfig:
     exploratory runs (benchmarks/bench_nerf.py also runs photometric with 0.999 to compare)."""
     pose_lr: float = 1e-3
     """Initial learning rate of the pose corrections (rad or m per step; same decay as lr)."""
+    target_ray_share: float = 0.5
+    """Share of each batch's rays drawn among pixels with a depth target when targets are
+    sparser than that (SfM points: ~1% of the pixels); 0 = every ray uniform over the pixels.
+    DS-NeRF's setting (half its rays are depth rays); dense RGB-D targets already exceed it."""
 
     def checks(self) -> list[Check]:
         return [("rays_per_batch", _count, "an int >= 1"), ("lr", lambda v: _number(v) and v > 0, "a number > 0"),
                 ("lr_final_factor", lambda v: _number(v) and 0 < v <= 1, "a number in (0, 1]"),
                 ("adam_beta2", lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
-                ("pose_lr", lambda v: _number(v) and v > 0, "a number > 0")]
+                ("pose_lr", lambda v: _number(v) and v > 0, "a number > 0"),
+                ("target_ray_share", lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)")]
 
 
 @dataclasses.dataclass

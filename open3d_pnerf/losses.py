@@ -127,7 +127,7 @@ def loss_method(method: str | LossMethod) -> LossMethod:
 
 
 def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights: LossWeights = LossWeights(),
-               n_rays: int | None = None, n_target: int | None = None) -> dict:
+               n_rays: int | None = None, n_target: int | None = None, target_weight=None) -> dict:
     """Loss terms and their weighted sum over renders (e.g. [fine, coarse]).
 
     method: a name in LOSSES or a LossMethod. mu, sigma (R,): ray-distance targets, NaN
@@ -136,12 +136,15 @@ def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights
     n_rays, n_target: when these R rays are a share of a larger batch, that batch's ray
     count and count of rays with a target; every per-ray mean is then taken over the whole
     batch, so the shares' losses (and gradients) add up to the whole batch's.
+    target_weight (R,): each target's weight in the depth terms (e.g. DS-NeRF's reprojection
+    weight of an SfM point; None = 1): a term is sum_r w_r term_r / n_target.
     """
     method = loss_method(method)
     has = torch.isfinite(mu)
     n_target = has.sum().clamp(min=1) if n_target is None else max(n_target, 1)
     share = 1.0 if n_rays is None else len(target_rgb) / n_rays  # colour: this share's part of the batch mean
     mu_v, sigma_v = mu[has], sigma[has]
+    w_v = None if target_weight is None else target_weight[has]
     terms = dict.fromkeys(TERMS, 0.0)
     for r in renders:
         terms["color"] = terms["color"] + color_l1(r.color, target_rgb) * share
@@ -149,7 +152,7 @@ def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights
             continue
         per_ray = method.depth_terms(r.weights[has], r.t[has], r.edges[has], mu_v, sigma_v)
         for name, values in per_ray.items():
-            terms[name] = terms[name] + values.sum() / n_target
+            terms[name] = terms[name] + (values if w_v is None else values * w_v).sum() / n_target
     total = sum(getattr(weights, k) * v for k, v in terms.items())
     terms = {k: torch.as_tensor(v) for k, v in terms.items()}
     terms["loss"] = total

@@ -80,7 +80,8 @@ class PNeRFModel(nn.Module):
              n_rays: int | None = None, n_target: int | None = None) -> dict:
         """Loss terms of :func:`~open3d_pnerf.losses.total_loss`, plus the pose prior when poses
         are refined. n_rays, n_target: the whole batch's counts when `batch` is one rank's share."""
-        terms = total_loss(self.loss_method, renders, batch.rgb, batch.mean, batch.sigma, weights, n_rays, n_target)
+        terms = total_loss(self.loss_method, renders, batch.rgb, batch.mean, batch.sigma, weights, n_rays, n_target,
+                           batch.weight)
         if self.pose_corrections is not None:  # each share of a batch adds its part of the prior
             share = 1.0 if n_rays is None else len(batch) / n_rays
             terms["pose_prior"] = self.pose_corrections.prior()

@@ -204,7 +204,8 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
 
     stages.set_postfix_str("training")
     model = build_model(config, aabb, poses[train_idx], train_seq.K, covariances[train_idx])
-    batcher = RayBatcher(train_seq, targets, model.device, config.seed, config.runtime.cache_frames)
+    batcher = RayBatcher(train_seq, targets, model.device, config.seed, config.runtime.cache_frames,
+                         target_share=config.optimizer.target_ray_share)
     eval_rays = heldout_rays(model, sequence, hold_idx, poses, config) if dist.is_main else None
     trainer = Trainer(model, batcher, config, eval_rays, checkpoint_dir, dist)
     if checkpoint is not None:

@@ -277,6 +277,26 @@ def test_total_loss_rays_without_target_contribute_only_colour(two_ray_batch):
     assert ds1["dsnerf"] > 0 and ds1["density"] == 0
 
 
+def test_total_loss_target_weights_scale_each_targets_depth_terms(two_ray_batch):
+    """A target's weight (DS-NeRF's reprojection weight) multiplies its depth terms, for every
+    method; the mean stays over the rays with a target, and colour is untouched."""
+    edges, t, w, color, target = two_ray_batch
+    render = make_render(w, edges, color)
+    mu, sigma = torch.tensor([1.5, 2.0, float("nan")]), torch.tensor([0.1, 0.2, float("nan")])
+    weight = torch.tensor([0.25, 1.0, 7.0])  # the target-less ray's weight plays no part
+    out = total_loss("pnerf", [render], target, mu, sigma, target_weight=weight)
+    has = torch.tensor([True, True, False])
+    torch.testing.assert_close(out["density"], (density_l1(w[has], edges[has], mu[has], sigma[has])
+                                                * weight[has]).sum() / 2)
+    torch.testing.assert_close(out["depth"], (depth_l1(w[has], t[has], mu[has]) * weight[has]).sum() / 2)
+    torch.testing.assert_close(out["color"], color_l1(color, target))
+    ds = total_loss("dsnerf", [render], target, mu, sigma, target_weight=weight)
+    torch.testing.assert_close(ds["dsnerf"], (dsnerf_loss(w[has], t[has], edges[has], mu[has], sigma[has])
+                                              * weight[has]).sum() / 2)
+    ones = total_loss("pnerf", [render], target, mu, sigma, target_weight=torch.ones(3))
+    torch.testing.assert_close(ones["loss"], total_loss("pnerf", [render], target, mu, sigma)["loss"])
+
+
 def test_total_loss_all_targets_missing_gives_colour_only_and_finite_gradients(two_ray_batch):
     edges, t, w, color, target = two_ray_batch
     color = color.clone().requires_grad_(True)

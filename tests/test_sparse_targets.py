@@ -86,14 +86,14 @@ def test_sparse_targets_analytic_sigma_weight_and_visibility():
     t = sparse_depth_targets(poses, K, (H, W), xyz, error, observed, covariances=pose_covariances())
     assert len(t) == 3 and t.image_size == (H, W)
     assert t.mean.dtype == np.float32 and t.sigma.dtype == np.float32 and not t.filled.any()
-    inv_sqrt_w = np.exp(0.5 * (error / error.mean()) ** 2)
+    weight = np.exp(-((error / error.mean()) ** 2))  # DS-NeRF's, kept as a weight: sigma is not widened
 
     # camera 0: A (nearest on the centre pixel, D behind it) and C; E, F, G and H give nothing
     assert sorted(zip(*np.nonzero(t.valid[0]))) == [(24, 32), (24, 42)]
     sin_a = 0.2 / np.hypot(0.2, 2.0)  # either other camera, seen from A
     s_dep_a = 0.5 * 2.0 / 50 / sin_a
     assert t.mean[0, 24, 32] == pytest.approx(2.0, rel=1e-6)
-    assert t.sigma[0, 24, 32] == pytest.approx(np.sqrt(s_dep_a**2 + 0.05**2) * inv_sqrt_w[0], rel=1e-5)
+    assert t.sigma[0, 24, 32] == pytest.approx(np.sqrt(s_dep_a**2 + 0.05**2), rel=1e-5)
     assert t.support[0, 24, 32] == 3 and t.support[0, 24, 42] == 2
     assert t.mean[0, 24, 42] == pytest.approx(2.0, rel=1e-6)
 
@@ -102,11 +102,38 @@ def test_sparse_targets_analytic_sigma_weight_and_visibility():
     s_dep_c = 1.0 * 2.0 / 50 / sin_c
     d_z = 2.0 / np.hypot(0.2, 2.0)
     assert t.mean[1, 24, 37] == pytest.approx(2.0, rel=1e-6)
-    assert t.sigma[1, 24, 37] == pytest.approx(np.sqrt(s_dep_c**2 + 0.04**2) * d_z * inv_sqrt_w[1], rel=1e-5)
+    assert t.sigma[1, 24, 37] == pytest.approx(np.sqrt(s_dep_c**2 + 0.04**2) * d_z, rel=1e-5)
     # H is a target in cameras 1 and 2 (which observe it), at its pixel
     assert t.valid[1, 29, 22] and t.valid[2, 29, 32] and not t.valid[0, 29, 27]
-    # the badly fitting point C (error 1.0 vs mean 0.57) gets the wider target
-    assert inv_sqrt_w[1] > 2 * inv_sqrt_w[0]
+    # the badly fitting point C (error 1.0 vs mean 0.57) gets the smaller weight
+    assert t.weight[0, 24, 32] == pytest.approx(weight[0]) and t.weight[0, 24, 42] == pytest.approx(weight[1])
+    assert t.weight[1, 24, 37] == pytest.approx(weight[1]) and weight[1] < 0.25 * weight[0]
+    assert (t.weight[~t.valid] == 0).all()
+    # the points project onto pixel centres, but D in camera 1 (u = 32 - 0.2 / 4 * 50 = 29.5)
+    np.testing.assert_allclose(t.offset[1, 24, 30], [-0.5, 0.0])
+    t.offset[1, 24, 30] = 0
+    assert np.abs(t.offset).max() < 1e-9
+
+
+def test_sparse_target_rays_go_through_the_exact_distorted_projection():
+    """A point projecting between pixel centres, with radial distortion: its target sits at the
+    pixel its distorted projection rounds to, with that projection's offset, and the ray through
+    the exact spot gives the point's z-depth (the pixel centre's ray would miss it)."""
+    poses, _, _, _ = scene()
+    xyz = np.array([[0.31, -0.17, 2.0], [-0.23, 0.21, 2.5]])
+    observed = np.ones((2, 3), bool)
+    k1, k2 = -0.1, 0.02
+    t = sparse_depth_targets(poses, K, (H, W), xyz, np.array([0.5, 0.5]), observed, radial=(k1, k2))
+    for k, p in enumerate(xyz):
+        x, y = p[0] / p[2], p[1] / p[2]
+        f = 1 + k1 * (x * x + y * y) + k2 * (x * x + y * y) ** 2
+        u, v = 50 * x * f + 32, 50 * y * f + 24
+        col, row = round(u), round(v)
+        assert t.valid[0, row, col], (k, u, v)
+        np.testing.assert_allclose(t.offset[0, row, col], [u - col, v - row], atol=1e-5)
+        assert abs(u - col) > 0.05 or abs(v - row) > 0.05  # really off-centre
+        assert t.mean[0, row, col] == pytest.approx(p[2], abs=0.05)  # near the point's depth
+    assert t.valid.sum() == 6
 
 
 def test_sparse_targets_do_not_depend_on_the_world_frame():
@@ -156,3 +183,9 @@ def test_fern_sparse_targets(shared_data):
     relative = t.sigma[t.valid] / t.mean[t.valid]
     assert np.isfinite(relative).all() and (relative > 0).all()
     assert 1e-4 < np.median(relative) < 0.05
+    # COLMAP's SIMPLE_RADIAL k1 is read, and the targets sit off the pixel centres where their points are seen
+    k1, k2 = fern.sfm.radial
+    assert k2 == 0 and k1 != 0 and abs(k1) < 0.1
+    offset = np.abs(t.offset[t.valid])
+    assert offset.max() <= 0.5 + 1e-6 and np.median(offset) > 0.1
+    assert ((t.weight[t.valid] > 0) & (t.weight[t.valid] <= 1)).all()

@@ -25,6 +25,7 @@ from open3d_pnerf.model import build_model
 from open3d_pnerf.pipeline import scene_box
 from open3d_pnerf.rendering import Rays, make_rays
 from open3d_pnerf.targets import depth_targets
+from open3d_pnerf.targets.storage import allocate
 from open3d_pnerf.training import CHECKPOINT_VERSION, Trainer, safe_torch_load
 
 
@@ -275,6 +276,60 @@ def test_ray_batcher_without_targets_gives_nan_targets(scene):
     rgb, mean, sigma = batch.rgb, batch.mean, batch.sigma
     assert len(batch) == 64 and rgb.shape == (64, 3)
     assert torch.isnan(mean).all() and torch.isnan(sigma).all()
+
+
+def sparse_scene_targets(seq, every: int = 97):
+    """Sparse targets on the sample: every `every`-th pixel of each frame keeps its dense
+    target, with an offset (0.3, -0.2) px and weight 0.5 (as SfM points would have)."""
+    dense = depth_targets(seq, poses=seq.gt_poses, progress=False)
+    t = allocate(len(seq), *seq.image_size, sparse=True)
+    keep = np.zeros(seq.image_size, bool)
+    keep.flat[::every] = True
+    t.valid[:] = dense.valid & keep
+    t.mean[:] = np.where(t.valid, dense.mean, 0)
+    t.sigma[:] = np.where(t.valid, dense.sigma, 0)
+    t.weight[t.valid] = 0.5
+    t.offset[t.valid] = [0.3, -0.2]
+    return t
+
+
+def test_ray_batcher_draws_its_target_share_from_sparse_targets(scene):
+    seq, _, _ = scene
+    targets = sparse_scene_targets(seq)
+    covered = targets.valid.mean()
+    assert covered < 0.02
+    g = torch.Generator().manual_seed(0)
+    batch = RayBatcher(seq, targets, "cpu", seed=0, target_share=0.5).sample(400, g)
+    has = torch.isfinite(batch.mean)
+    assert has.sum() >= 200 and has.sum() < 200 + 20  # the share, plus the few uniform rays that hit one
+    uniform = RayBatcher(seq, targets, "cpu", seed=0).sample(400, torch.Generator().manual_seed(0))
+    assert torch.isfinite(uniform.mean).sum() < 20
+    # target rays go through the targets' exact spots, with their weights and bilinear colours
+    torch.testing.assert_close(batch.u[has] - batch.u[has].round(), torch.full((int(has.sum()),), 0.3))
+    torch.testing.assert_close(batch.v[has] - batch.v[has].round(), torch.full((int(has.sum()),), -0.2))
+    assert (batch.weight[has] == 0.5).all() and (batch.weight[~has] == 0).all()
+    frame = int(batch.frames[has][0])
+    col, row = int(batch.u[has][0].round()), int(batch.v[has][0].round())
+    image = seq.color_on_depth_grid(seq[frame].color).astype(np.float64) / 255
+    # u = col + 0.3, v = row - 0.2: 30% of the next column, 20% of the row above
+    expected = (0.2 * (0.7 * image[row - 1, col] + 0.3 * image[row - 1, col + 1])
+                + 0.8 * (0.7 * image[row, col] + 0.3 * image[row, col + 1]))
+    np.testing.assert_allclose(batch.rgb[has][0].numpy(), expected, atol=1e-6)
+    # the target's ray distance is its z-depth times the norm of K^-1 [u, v, 1] at the exact spot
+    K = seq.K
+    u0, v0 = float(batch.u[has][0]), float(batch.v[has][0])
+    norm = np.linalg.norm([(u0 - K[0, 2]) / K[0, 0], (v0 - K[1, 2]) / K[1, 1], 1])
+    assert float(batch.mean[has][0]) == pytest.approx(targets.mean[frame, row, col] * norm, rel=1e-6)
+
+
+def test_ray_batcher_with_dense_targets_ignores_the_share(scene):
+    """RGB-D targets cover more than the share: batches are drawn as without it."""
+    seq, targets, _ = scene
+    a = RayBatcher(seq, targets, "cpu", seed=0, target_share=0.5).sample(256, torch.Generator().manual_seed(4))
+    b = RayBatcher(seq, targets, "cpu", seed=0).sample(256, torch.Generator().manual_seed(4))
+    for f in dataclasses.fields(a):
+        torch.testing.assert_close(getattr(a, f.name), getattr(b, f.name), equal_nan=True)
+    assert (a.weight == 1).all()
 
 
 def test_ray_batcher_cache_is_bounded_and_rotates(scene):

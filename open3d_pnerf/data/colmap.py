@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import struct
+import warnings
 from pathlib import Path
 from typing import Mapping
 
@@ -61,6 +62,17 @@ class ColmapCamera:
         """(cx, cy) in COLMAP pixels (top-left pixel centre at (0.5, 0.5))."""
         first = 1 if self.model in SINGLE_FOCAL_MODELS else 2
         return float(self.params[first]), float(self.params[first + 1])
+
+    @property
+    def radial_distortion(self) -> tuple[float, float]:
+        """(k1, k2) of SIMPLE_RADIAL (k2 = 0) and RADIAL; (0, 0) for the pinhole models. Other
+        models' distortion is not modelled: a warning says so and (0, 0) is returned."""
+        if self.model in ("SIMPLE_RADIAL", "RADIAL"):
+            return float(self.params[3]), float(self.params[4]) if self.model == "RADIAL" else 0.0
+        if self.model not in ("SIMPLE_PINHOLE", "PINHOLE"):
+            warnings.warn(f"COLMAP camera {self.id}: the {self.model} distortion is not modelled; its images are "
+                          "used as pinhole images")
+        return 0.0, 0.0
 
 
 @dataclasses.dataclass

@@ -102,6 +102,7 @@ def read_llff(path, factor: int | None = None, scale: float | None = None, image
 
     model = path / "sparse" / "0"
     cx, cy = width_full / 2, height_full / 2  # COLMAP pixels (top-left pixel centre at 0.5)
+    radial = (0.0, 0.0)
     if (model / "cameras.bin").is_file():
         cameras = read_cameras_binary(model / "cameras.bin")
         if len(cameras) != 1:
@@ -113,6 +114,7 @@ def read_llff(path, factor: int | None = None, scale: float | None = None, image
                 f"{width_full:.0f}x{height_full:.0f}"
             )
         cx, cy = camera.principal_point
+        radial = camera.radial_distortion
     intrinsic = pinhole(width, height, focal_full * sx, focal_full * sy, cx * sx - 0.5, cy * sy - 0.5)
     found = _sparse_points(model, image_paths, len(rows))
     points = SparsePoints(found.xyz * scale, found.error * sx, found.observed)
@@ -121,7 +123,7 @@ def read_llff(path, factor: int | None = None, scale: float | None = None, image
         covariances = sfm_pose_covariances(poses, K, points.xyz, points.error, points.observed)
     else:
         covariances = np.tile(np.eye(6), (len(rows), 1, 1))
-    sfm = SfMData(poses, covariances, points, rows[:, 15:17] * scale, scale)
+    sfm = SfMData(poses, covariances, points, rows[:, 15:17] * scale, scale, radial)
     readers = [color_only_reader(p, intrinsic.height, intrinsic.width) for p in image_paths]
     return RGBDSequence(readers, intrinsic, name=path.name, image_scale=image_scale, has_depth=False, sfm=sfm)
 

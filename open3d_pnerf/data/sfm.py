@@ -50,7 +50,11 @@ class SfMData:
     poses: (N, 4, 4) camera-to-world, OpenCV axes; covariances: (N, 6, 6) of those poses
     ([rotation, translation], right perturbation; see :func:`sfm_pose_covariances`); points:
     :class:`SparsePoints` (error in pixels of the images the sequence reads at image scale 1);
-    bounds: (N, 2) near/far z-depth, or None when unknown; scale: scene units per SfM unit.
+    bounds: (N, 2) near/far z-depth, or None when unknown; scale: scene units per SfM unit;
+    radial: (k1, k2) radial distortion of the images (normalised image coordinates, COLMAP's
+    SIMPLE_RADIAL / RADIAL): a point at normalised (x, y) is seen at (x, y) (1 + k1 r^2 + k2 r^4).
+    The images are used as they are (as pinhole images, as NeRF does); sparse targets' rays go
+    through where the images show their points.
     """
 
     poses: np.ndarray
@@ -58,6 +62,7 @@ class SfMData:
     points: SparsePoints
     bounds: np.ndarray | None = None
     scale: float = 1.0
+    radial: tuple[float, float] = (0.0, 0.0)
 
     def check(self, n: int, what: str) -> "SfMData":
         """Return self after checking its shapes against n frames (InputError naming `what`)."""
@@ -77,7 +82,8 @@ class SfMData:
         """The data of frames `idx` (the points keep only those frames' observations)."""
         points = dataclasses.replace(self.points, observed=self.points.observed[:, idx])
         bounds = None if self.bounds is None else self.bounds[idx]
-        return SfMData(self.poses[idx], self.covariances[idx], points, bounds, self.scale)
+        return dataclasses.replace(self, poses=self.poses[idx], covariances=self.covariances[idx], points=points,
+                                   bounds=bounds)
 
     def at_pixel_scale(self, factor: float) -> "SfMData":
         """The same data with reprojection errors in pixels of images resized by `factor`."""

@@ -75,7 +75,7 @@ def depth_targets(
     if not sequence.has_depth:
         pts = sfm.points
         return sparse_depth_targets(poses, sequence.K, sequence.image_size, pts.xyz, pts.error, pts.observed,
-                                    covariances=covs, storage_dir=storage_dir)
+                                    covariances=covs, radial=sfm.radial, storage_dir=storage_dir)
     if neighbors < 0 or consistency_sigmas <= 0 or fill_min_views < 1:
         raise InputError("need neighbors >= 0, consistency_sigmas > 0 and fill_min_views >= 1")
     if not (isinstance(sensor, SensorNoise) and min(sensor.a, sensor.b, sensor.relative) >= 0):

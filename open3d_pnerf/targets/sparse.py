@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import check_covariances, check_poses, nearest_per_pixel, nearest_pixels, unit_rays
+from ..camera import check_covariances, check_poses, nearest_per_pixel, project
 from ..errors import InputError
 from .storage import DepthTargets, allocate
 
@@ -41,6 +41,7 @@ def sparse_depth_targets(
     observed: np.ndarray,
     *,
     covariances: np.ndarray | None = None,
+    radial: tuple[float, float] = (0.0, 0.0),
     min_angle_deg: float = 1.0,
     min_error: float = 0.01,
     storage_dir: str | Path | None = None,
@@ -51,10 +52,13 @@ def sparse_depth_targets(
     error: (M,) their reprojection error in pixels of K's images, floored at `min_error` so that
     an exact fit keeps a nonzero sigma; observed: (M, N) bool, point k is in frame i's track;
     covariances: (N, 6, 6) pose covariances ([rotation, translation], right perturbation),
-    zeros if None. Units of length are those of the poses and points.
+    zeros if None; radial: the images' (k1, k2) (:class:`~open3d_pnerf.data.sfm.SfMData`).
+    Units of length are those of the poses and points.
 
-    Each point k observed in frame i, in front of it and projecting inside the image, gives
-    the target of the pixel it rounds to (the nearest point where several do):
+    Each point k observed in frame i, in front of it and seen inside the image, gives a target
+    on the ray through the exact (distorted, sub-pixel) spot (u, v) where the image shows it,
+    stored at the pixel that spot rounds to (the nearest point where several do), with
+    offset = (u, v) - that pixel's centre:
       * point covariance, from its track: lateral sigma s_lat = e_k z / fx (e_k pixels at
         z-depth z) across the viewing direction v = (p - c_i) / |p - c_i|, depth sigma
         s_dep = s_lat / sin(theta) along v, theta the angle between v and another observing
@@ -62,12 +66,10 @@ def sparse_depth_targets(
         error into one 1/sin(theta) larger along each other): S_p = s_lat^2 (I - v v^T) + s_dep^2 v v^T;
       * pose: S = S_p + R_i S_i[3:, 3:] R_i^T, the camera centre's world covariance (rotation
         about the centre does not move points along the camera's own rays);
-      * the pixel's unit ray d (through its integer centre) meets N(p, S) in the Gaussian
-        (t*, var) of :func:`gaussian_along_ray`; z-depth mean = t* d_z, sigma = sqrt(var) d_z
-        with d_z the ray's camera-frame z (z = t d_z);
-      * weight w_k = exp(-(e_k / mean(e))^2) (DS-NeRF) down-weights badly fitting points.
-        DepthTargets has no weight, so it is folded into sigma: sigma / sqrt(w_k) weights
-        the squared residual of a Gaussian term by w_k.
+      * the unit ray d through (u, v) meets N(p, S) in the Gaussian (t*, var) of
+        :func:`gaussian_along_ray`; z-depth mean = t* d_z, sigma = sqrt(var) d_z with d_z the
+        ray's camera-frame z (z = t d_z);
+      * weight w_k = exp(-(e_k / mean(e))^2) (DS-NeRF's) weights the target's loss terms.
     Points seen under theta < min_angle_deg give no target. support: the point's track
     length (capped at 255); filled: False (the frame observes the point itself). storage_dir:
     as :func:`depth_targets`.
@@ -87,39 +89,46 @@ def sparse_depth_targets(
         raise InputError(f"observed must be a bool (M, N) = ({m}, {n}) array, got {observed.dtype} {observed.shape}")
     if (error < 0).any() or min_error <= 0 or not 0 <= min_angle_deg < 90:
         raise InputError("need error >= 0, min_error > 0 and 0 <= min_angle_deg < 90")
+    if len(radial) != 2 or not np.isfinite(radial).all():
+        raise InputError(f"radial must be finite (k1, k2), got {radial!r}")
 
     error = np.maximum(error, min_error)
-    inv_sqrt_weight = np.exp(0.5 * (error / (error.mean() if m else 1.0)) ** 2)
+    weight = np.exp(-((error / (error.mean() if m else 1.0)) ** 2))
     track = np.minimum(observed.sum(1), 255).astype(np.uint8)
     centres = poses[:, :3, 3]
-    rays = unit_rays(K, h, w).reshape(-1, 3)
-    out = allocate(n, h, w, storage_dir)
+    out = allocate(n, h, w, storage_dir, sparse=True)
     for i in range(n):
         idx = np.flatnonzero(observed[:, i])
         rot = poses[i, :3, :3]
         q = (xyz[idx] - centres[i]) @ rot  # camera frame
         idx, q = idx[q[:, 2] > 0], q[q[:, 2] > 0]
-        pix, inside = nearest_pixels(K, q, h, w)
-        idx, q, pix = idx[inside], q[inside], pix[inside]
+        u, v = project(K, q, radial)
+        col, row = np.round(u).astype(np.int64), np.round(v).astype(np.int64)
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        idx, q, u, v, col, row = idx[inside], q[inside], u[inside], v[inside], col[inside], row[inside]
         # viewing directions of every camera to these points, (M_i, N, 3), and theta
         view = xyz[idx, None] - centres[None]
         view /= np.linalg.norm(view, axis=-1, keepdims=True)
-        v = view[:, i]
-        sin_theta = np.where(observed[idx], np.linalg.norm(np.cross(v[:, None], view), axis=-1), 0).max(1)
+        vdir = view[:, i]
+        sin_theta = np.where(observed[idx], np.linalg.norm(np.cross(vdir[:, None], view), axis=-1), 0).max(1)
         keep = (sin_theta > 0) & (sin_theta >= np.sin(np.radians(min_angle_deg)))
-        idx, q, pix, v, sin_theta = idx[keep], q[keep], pix[keep], v[keep], sin_theta[keep]
+        idx, q, vdir, sin_theta = idx[keep], q[keep], vdir[keep], sin_theta[keep]
+        u, v, col, row = u[keep], v[keep], col[keep], row[keep]
         s_lat = error[idx] * q[:, 2] / K[0, 0]
         s_dep = s_lat / sin_theta
-        vv = v[:, :, None] * v[:, None, :]
+        vv = vdir[:, :, None] * vdir[:, None, :]
         cov = s_lat[:, None, None] ** 2 * (np.eye(3) - vv) + s_dep[:, None, None] ** 2 * vv
         cov += rot @ covs[i, 3:, 3:] @ rot.T
-        d_cam = rays[pix]
+        d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+        d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
         t, var = gaussian_along_ray(centres[i], d_cam @ rot.T, xyz[idx], cov)
-        z, sigma = t * d_cam[:, 2], np.sqrt(var) * d_cam[:, 2] * inv_sqrt_weight[idx]
+        z, sigma = t * d_cam[:, 2], np.sqrt(var) * d_cam[:, 2]
+        pix = row * w + col
         best = nearest_per_pixel(pix, z)
-        pix, idx, z, sigma = pix[best], idx[best], z[best], sigma[best]
-        out.mean[i].flat[pix] = z
-        out.sigma[i].flat[pix] = sigma
-        out.valid[i].flat[pix] = True
-        out.support[i].flat[pix] = track[idx]
+        out.mean[i].flat[pix[best]] = z[best]
+        out.sigma[i].flat[pix[best]] = sigma[best]
+        out.valid[i].flat[pix[best]] = True
+        out.support[i].flat[pix[best]] = track[idx[best]]
+        out.weight[i].flat[pix[best]] = weight[idx[best]]
+        out.offset[i].reshape(-1, 2)[pix[best]] = np.stack([u - col, v - row], -1)[best]
     return out

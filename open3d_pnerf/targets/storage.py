@@ -17,6 +17,9 @@ class DepthTargets:
     mean, sigma: float32 z-depth metres (0 where invalid). valid: bool. support: uint8
     number of observations fused (own depth counts as one). filled: bool, True where the
     frame had no own depth and the target comes from neighbours only.
+    Sparse targets (SfM points) also have weight: float32 loss weight of each target (None:
+    1 everywhere), and offset: (N, H, W, 2) float32 (du, dv) pixels from the pixel centre to
+    where the target's point is seen (None: at the centres); its ray goes through that spot.
     """
 
     mean: np.ndarray
@@ -24,6 +27,8 @@ class DepthTargets:
     valid: np.ndarray
     support: np.ndarray
     filled: np.ndarray
+    weight: np.ndarray | None = None
+    offset: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.mean.shape[0]
@@ -44,15 +49,16 @@ class DepthTargets:
         }
 
 
-def allocate(n: int, h: int, w: int, storage_dir=None) -> DepthTargets:
-    """Zeroed targets of n frames of h x w pixels: NumPy arrays, or .npy memory maps in storage_dir."""
+def allocate(n: int, h: int, w: int, storage_dir=None, sparse: bool = False) -> DepthTargets:
+    """Zeroed targets of n frames of h x w pixels: NumPy arrays, or .npy memory maps in
+    storage_dir; sparse: with (zero) weight and offset arrays."""
     if storage_dir is None:
-        make = lambda name, dtype: np.zeros((n, h, w), dtype)  # noqa: E731
+        make = lambda name, dtype, extra=(): np.zeros((n, h, w, *extra), dtype)  # noqa: E731
     else:
         folder = Path(storage_dir)
         folder.mkdir(parents=True, exist_ok=True)
-        make = lambda name, dtype: np.lib.format.open_memmap(  # noqa: E731
-            folder / f"{name}.npy", mode="w+", dtype=dtype, shape=(n, h, w)
+        make = lambda name, dtype, extra=(): np.lib.format.open_memmap(  # noqa: E731
+            folder / f"{name}.npy", mode="w+", dtype=dtype, shape=(n, h, w, *extra)
         )
     return DepthTargets(
         make("mean", np.float32),
@@ -60,4 +66,6 @@ def allocate(n: int, h: int, w: int, storage_dir=None) -> DepthTargets:
         make("valid", bool),
         make("support", np.uint8),
         make("filled", bool),
+        make("weight", np.float32) if sparse else None,
+        make("offset", np.float32, (2,)) if sparse else None,
     )
