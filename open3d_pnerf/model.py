@@ -31,12 +31,14 @@ class PNeRFModel(nn.Module):
     For training, give the training cameras: poses (N, 4, 4) camera-to-world and K (3, 3),
     and optionally exposure (an ExposureGains of the N frames) and pose_corrections (a
     PoseCorrections of the N frames, weighted by pose_prior_weight in the loss).
+    depth_range: (2,) [near, far] z-depth every ray is clipped to besides the scene box (an
+    image-only scene's SfM bounds), or None.
     """
 
     def __init__(self, field: nn.Module, sampling: SamplingConfig, loss: str | LossMethod = "pnerf", *,
                  coarse_terms: bool = True, poses: torch.Tensor | None = None, K: torch.Tensor | None = None,
                  exposure: ExposureGains | None = None, pose_corrections: PoseCorrections | None = None,
-                 pose_prior_weight: float = 0.0):
+                 pose_prior_weight: float = 0.0, depth_range: torch.Tensor | None = None):
         super().__init__()
         self.field = field
         self.sampling = sampling
@@ -47,6 +49,7 @@ class PNeRFModel(nn.Module):
         self.pose_prior_weight = pose_prior_weight
         self.register_buffer("train_poses", poses, persistent=False)
         self.register_buffer("K", K, persistent=False)
+        self.register_buffer("depth_range", depth_range, persistent=False)
 
     @property
     def device(self) -> torch.device:
@@ -58,7 +61,7 @@ class PNeRFModel(nn.Module):
         poses = self.train_poses[batch.frames]
         if self.pose_corrections is not None:
             poses = self.pose_corrections(poses, batch.frames)
-        return make_rays(poses, self.K, batch.u, batch.v, self.field.aabb)
+        return make_rays(poses, self.K, batch.u, batch.v, self.field.aabb, depth_range=self.depth_range)
 
     def forward(self, batch: RayBatch, generator: torch.Generator | BatchShare | None = None) -> list[RayRender]:
         """[fine] or [fine, coarse] renders of the batch's pixels, with each frame's exposure.
@@ -110,16 +113,19 @@ class PNeRFModel(nn.Module):
         (3, 3), clipped to the scene box."""
         pose = torch.as_tensor(np.array(pose, np.float32), device=self.device)
         K = torch.as_tensor(np.array(K, np.float32), device=self.device)
-        return make_rays(pose, K, u, v, self.field.aabb)
+        return make_rays(pose, K, u, v, self.field.aabb, depth_range=self.depth_range)
 
 
 def build_model(config: ReconstructionConfig, aabb, poses: np.ndarray | None = None, K: np.ndarray | None = None,
-                covariances: np.ndarray | None = None) -> PNeRFModel:
+                covariances: np.ndarray | None = None, depth_range=None) -> PNeRFModel:
     """The model of a config over the scene box aabb (2, 3): the field (seeded by config.seed,
     on config.device) and, given the training cameras (poses (N, 4, 4), K (3, 3), pose
-    covariances (N, 6, 6)), the exposure gains and pose corrections the config asks for."""
+    covariances (N, 6, 6)), the exposure gains and pose corrections the config asks for;
+    depth_range: (2,) z-depth [near, far] of every ray, or None."""
     field = config.build_field(aabb)
     device = field.aabb.device
+    if depth_range is not None:
+        depth_range = torch.as_tensor(np.asarray(depth_range), dtype=torch.float32, device=device)
     cameras, exposure, corrections = {}, None, None
     if poses is not None:
         cameras = dict(poses=torch.as_tensor(np.asarray(poses), dtype=torch.float32, device=device),
@@ -130,4 +136,5 @@ def build_model(config: ReconstructionConfig, aabb, poses: np.ndarray | None = N
             exposure = ExposureGains(len(poses), device)
     objective = config.objective
     return PNeRFModel(field, config.sampling, config.loss, coarse_terms=objective.coarse_terms, exposure=exposure,
-                      pose_corrections=corrections, pose_prior_weight=objective.pose_prior_weight, **cameras)
+                      pose_corrections=corrections, pose_prior_weight=objective.pose_prior_weight,
+                      depth_range=depth_range, **cameras)

@@ -123,14 +123,28 @@ def build_targets(train_seq: RGBDSequence, config: ReconstructionConfig, poses: 
                          progress=config.progress)
 
 
+NEAR_MARGIN = 0.9  # depth_range's near plane: 0.9 x the nearest SfM bound, as DS-NeRF (no NDC) and NeRF's LLFF loader
+
+
+def depth_range(train_seq: RGBDSequence) -> np.ndarray | None:
+    """(2,) z-depth [near, far] for every ray of an image-only sequence with SfM bounds:
+    [0.9 x the training frames' smallest near bound, their largest far bound]; None otherwise."""
+    if train_seq.has_depth or train_seq.sfm is None or train_seq.sfm.bounds is None:
+        return None
+    bounds = train_seq.sfm.bounds
+    return np.array([NEAR_MARGIN * bounds[:, 0].min(), bounds[:, 1].max()])
+
+
 def training_box(train_seq: RGBDSequence, targets: DepthTargets, poses: np.ndarray) -> np.ndarray:
     """(2, 3) scene box of the training frames: around their targets' surfaces and cameras; for an
-    image-only sequence without a target in view, the camera frusta between the near/far bounds."""
-    if train_seq.has_depth or targets.valid.any() or train_seq.sfm.bounds is None:
+    image-only sequence with SfM bounds, the camera frusta within :func:`depth_range` (so no ray
+    leaves the box before its far bound)."""
+    rng = depth_range(train_seq)
+    if rng is None:
         return scene_box(targets, poses, train_seq.K)
-    warnings.warn(f"{train_seq.name}: no SfM point gives a depth target in the training views; "
-                  "the scene box is the camera frusta between the near/far bounds")
-    return frustum_box(train_seq.K, train_seq.image_size, poses, train_seq.sfm.bounds)
+    if not targets.valid.any():
+        warnings.warn(f"{train_seq.name}: no SfM point gives a depth target in the training views")
+    return frustum_box(train_seq.K, train_seq.image_size, poses, np.tile(rng, (len(poses), 1)))
 
 
 def targets_storage(train_seq: RGBDSequence, checkpoint_dir, dist: DistributedContext) -> Path | None:
@@ -203,7 +217,7 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     stages.update(1)
 
     stages.set_postfix_str("training")
-    model = build_model(config, aabb, poses[train_idx], train_seq.K, covariances[train_idx])
+    model = build_model(config, aabb, poses[train_idx], train_seq.K, covariances[train_idx], depth_range(train_seq))
     batcher = RayBatcher(train_seq, targets, model.device, config.seed, config.runtime.cache_frames,
                          target_share=config.optimizer.target_ray_share)
     eval_rays = heldout_rays(model, sequence, hold_idx, poses, config) if dist.is_main else None

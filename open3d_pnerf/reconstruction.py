@@ -254,6 +254,7 @@ class Reconstruction:
             "format_version": FORMAT_VERSION,
             "config": self.config.to_dict(),
             "aabb": self.aabb.tolist(),
+            "depth_range": None if self.model.depth_range is None else self.model.depth_range.tolist(),
             "intrinsic": {"width": intr.width, "height": intr.height,
                           "K": intrinsic_matrix(intr).tolist()},
             "train_indices": self.train_indices.tolist(),
@@ -314,7 +315,7 @@ class Reconstruction:
             raise CheckpointError(f"{meta_path}: malformed metadata ({exc})") from None
         if device:
             config = config.replace(device=device)
-        model = build_model(config, aabb)
+        model = build_model(config, aabb, depth_range=_depth_range(meta.get("depth_range"), meta_path))
         field = model.field
         state = safe_torch_load(d / "model.pt")
         try:
@@ -363,3 +364,14 @@ def _read_ply(path: Path, read):
     if (out[0] if isinstance(out, tuple) else out).is_empty():
         raise CheckpointError(f"{path}: unreadable or empty PLY (save never writes an empty one)")
     return out
+
+
+def _depth_range(value, meta_path) -> np.ndarray | None:
+    """A saved depth_range: None, or finite [near, far] with 0 < near < far."""
+    if value is None:
+        return None
+    rng = np.asarray(value, np.float64) if isinstance(value, list) else np.full(2, np.nan)
+    if rng.shape != (2,) or not (np.isfinite(rng).all() and 0 < rng[0] < rng[1]):
+        raise CheckpointError(f"{meta_path}: malformed metadata (depth_range {value!r} is not [near, far], "
+                              "0 < near < far)")
+    return rng

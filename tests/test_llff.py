@@ -9,6 +9,7 @@ import struct
 import cv2
 import numpy as np
 import pytest
+import torch
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -362,6 +363,16 @@ def test_reconstruct_trains_on_an_image_sequence_with_its_sfm_poses(tmp_path):
     assert recon.depth_sigma_scale == 1.0  # no sensor depth to calibrate against
     with pytest.raises(InputError, match="calibrate_depth_sigma\\(\\): sequence: scene has no depth images"):
         recon.calibrate_depth_sigma(seq)
+    # every ray lies between 0.9 x the nearest SfM bound and the farthest, in z-depth, inside the box
+    near, far = 0.9 * seq.sfm.bounds[:, 0].min(), seq.sfm.bounds[:, 1].max()
+    np.testing.assert_allclose(recon.model.depth_range.numpy(), [near, far], rtol=1e-6)
+    u, v = torch.meshgrid(torch.arange(0.0, seq.image_size[1], 3), torch.arange(0.0, seq.image_size[0], 3),
+                          indexing="xy")
+    rays = recon.model.camera_rays(seq.sfm.poses[1], seq.K, u.reshape(-1), v.reshape(-1))
+    np.testing.assert_allclose((rays.near / rays.norms).numpy(), near, rtol=1e-5)
+    np.testing.assert_allclose((rays.far / rays.norms).numpy(), far, rtol=1e-5)  # the box holds the frusta
+    recon.save(tmp_path / "saved")
+    np.testing.assert_allclose(pn.Reconstruction.load(tmp_path / "saved").model.depth_range.numpy(), [near, far])
 
 
 def test_cli_reconstructs_and_evaluates_an_llff_folder(tmp_path, capsys):
@@ -388,7 +399,7 @@ def test_reconstruct_learns_the_held_out_fern_views_from_ten_images(shared_data)
     recon = pn.reconstruct(seq, cfg)
     assert recon.holdout_indices.tolist() == [0, 8, 16] and len(recon.train_indices) == 10
     trained = heldout_scores(recon, seq)["model"]
-    recon.model = build_model(cfg, recon.aabb)
+    recon.model = build_model(cfg, recon.aabb, depth_range=recon.model.depth_range)
     untrained = heldout_scores(recon, seq)["model"]
     print(f"fern held-out PSNR {trained['psnr']:.2f} dB (untrained {untrained['psnr']:.2f})")
     assert trained["psnr"] > untrained["psnr"] + 4 and trained["ssim"] > untrained["ssim"] + 0.2

@@ -63,9 +63,14 @@ def intersect_aabb(origins, directions, aabb, min_near: float = 0.05):
     return near, far
 
 
-def make_rays(pose, K, u, v, aabb, min_near: float = 0.05) -> Rays:
-    """World rays for pixels (u, v) clipped to the scene box (misses get far = near + 1e-3)."""
+def make_rays(pose, K, u, v, aabb, min_near: float = 0.05, depth_range: torch.Tensor | None = None) -> Rays:
+    """World rays for pixels (u, v) clipped to the scene box (misses get far = near + 1e-3) and,
+    given depth_range (2,) = [near, far] z-depth (e.g. an LLFF scene's bounds), to that slab
+    in front of the camera."""
     origins, directions, norms = pixel_rays(pose, K, u, v)
     near, far = intersect_aabb(origins, directions, aabb, min_near)
+    if depth_range is not None:
+        near = torch.maximum(near, depth_range[0] * norms)
+        far = torch.minimum(far, depth_range[1] * norms)
     far = torch.maximum(far, near + 1e-3)
     return Rays(origins, directions, near, far, norms)
