@@ -311,3 +311,34 @@ def test_total_loss_unknown_kind_raises(two_ray_batch):
     edges, t, w, color, target = two_ray_batch
     with pytest.raises(ValueError, match="unknown loss 'nerf'"):
         total_loss("nerf", [make_render(w, edges, color)], target, torch.ones(3), torch.ones(3))
+
+
+@pytest.mark.parametrize("sigma_z", [0.002, 0.01, 0.05])
+def test_the_sigma_floor_never_binds_on_the_fine_render_of_a_target_ray(sigma_z):
+    """gaussian_bin_masses floors sigma at half the width of the bin holding mu. On the fine
+    render the n_guided depth-guided samples sit on equal-probability slices of the target, so
+    that bin is ~sigma sqrt(2 pi) / n_guided wide and the floor stays below sigma: the fine
+    density term asks for exactly the target. (It binds on the 16 wide coarse bins, by design.)"""
+    from open3d_pnerf.rendering import Rays, SamplingConfig, render_rays
+
+    class Fog:
+        def geometry(self, x):
+            return torch.full((x.shape[0],), 0.3), torch.zeros(x.shape[0], 1)
+
+        def color(self, features, d):
+            return torch.full((features.shape[0], 3), 0.5)
+
+    r = 256
+    rays = Rays(torch.zeros(r, 3), torch.tensor([[0.0, 0.0, 1.0]]).expand(r, 3).clone(), torch.full((r,), 0.5),
+                torch.full((r,), 6.0), torch.ones(r))
+    mu = torch.linspace(1.0, 5.0, r)
+    sigma = torch.full((r,), sigma_z)
+    fine, coarse = render_rays(Fog(), rays, SamplingConfig(16, 8, 16), mu, sigma, torch.Generator().manual_seed(0),
+                               with_coarse=True)
+
+    def half_width_at_mu(edges):
+        idx = torch.searchsorted(edges.contiguous(), mu[:, None].contiguous()).clamp(1, edges.shape[1] - 1)
+        return 0.5 * (edges.gather(1, idx) - edges.gather(1, idx - 1))[:, 0]
+
+    assert (half_width_at_mu(fine.edges) < sigma).all()
+    assert (half_width_at_mu(coarse.edges) > sigma).all()  # coarse bins are ~0.34 wide

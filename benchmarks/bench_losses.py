@@ -1,0 +1,184 @@
+"""The paper's loss comparison, paired over seeds: pnerf vs DS-NeRF's loss vs colour only.
+
+Every loss trains the same configuration (the `fast` preset, the library's defaults) for the
+same number of steps from the same seeds; a run's held-out PSNR/SSIM (and depth L1 and sigma
+coverage where the dataset has depth) is scored on full held-out images at the end. Equal
+time: each run also scores a fixed set of 2,048 held-out pixels every 250 steps; the table's
+"equal-time" column is that PSNR at the largest time every run of the dataset and seed
+reached (linear between evaluations).
+
+Datasets (see bench_suite.py): fern (LLFF, 10 training views, every 8th image held out, COLMAP
+poses and points, 504x378), synthetic (the room, 10 views at ground-truth poses, every 4th
+frame held out, 320x240), tum (TUM fr1/xyz, 10 views at ground-truth poses, every 4th held
+out, 320x240). Each run is a fresh process, `--jobs` at once with one torch thread each.
+
+    python benchmarks/bench_losses.py --datasets fern --steps 14000 --name losses_fern
+    python benchmarks/bench_losses.py --datasets synthetic,tum --steps 3000 --name losses_rgbd
+    python benchmarks/bench_losses.py --datasets synthetic --variants pnerf,pnerf_fine_terms --seeds 0,1 \
+        --steps 1500 --name tuning_coarse_terms      # a settings choice, on the tuning scene
+
+Writes benchmarks/results/<name>.json and <name>.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import platform
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+from bench_suite import HOLDOUT_EVERY, IMAGE_ONLY, IMAGE_SCALE, OUT, PATHS, SHARED, load, poses_for, prepare_synthetic
+
+VARIANTS = {  # name -> config overrides
+    "pnerf": dict(loss="pnerf"),
+    "dsnerf": dict(loss="dsnerf"),
+    "photometric": dict(loss="photometric"),
+    "pnerf_fine_terms": {"loss": "pnerf", "objective.coarse_terms": False},
+    "pnerf_uniform_batches": {"loss": "pnerf", "optimizer.target_ray_share": 0.0},
+}
+PAPER = {"fern": {"pnerf": (25.53, 0.80), "dsnerf": (24.27, 0.74)}}  # the PNeRF paper's Table (PSNR dB, SSIM)
+
+
+def run_one(spec: dict) -> dict:
+    """Train one (dataset, variant, seed) in a fresh process and score its held-out frames."""
+    import torch
+
+    torch.set_num_threads(spec["threads"])
+    import open3d_pnerf as pn
+    from open3d_pnerf.evaluation import heldout_scores
+
+    seq, _ = load(spec["source"], Path(spec["cache"]))
+    poses, covs = poses_for(spec["source"], seq, "gt", Path(spec["cache"]))
+    d = spec["dataset"]
+    cfg = pn.ReconstructionConfig.preset(
+        "fast", max_steps=spec["steps"], time_budget_s=None, holdout_every=HOLDOUT_EVERY.get(d, 4),
+        image_scale=IMAGE_SCALE.get(d, 0.5), train_views=spec["views"], seed=spec["seed"], progress=False,
+        **VARIANTS[spec["variant"]])
+    t0 = time.perf_counter()
+    recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
+    wall = time.perf_counter() - t0
+    scores = heldout_scores(recon, seq)["model"]
+    tr = recon.stats["training"]
+    history = [(h["seconds"], h["eval_psnr"]) for h in recon.stats["history"] if "eval_psnr" in h]
+    return {**{k: spec[k] for k in ("dataset", "variant", "seed", "views")}, "model": scores,
+            "steps": tr["steps"], "train_s": tr["seconds"], "wall_s": round(wall, 1),
+            "timings": recon.stats["timings"], "eval_history": history}
+
+
+def at_time(history: list, seconds: float) -> float:
+    """The periodic held-out PSNR at `seconds`, linear between evaluations."""
+    t, p = np.array(history).T
+    return float(np.interp(seconds, t, p))
+
+
+def add_equal_time(results: list[dict]) -> None:
+    """Each run's periodic held-out PSNR at the largest time all runs of its dataset and seed reached."""
+    for r in results:
+        group = [q for q in results if q["dataset"] == r["dataset"] and q["seed"] == r["seed"]]
+        common = min(q["eval_history"][-1][0] for q in group)
+        r["equal_time"] = {"seconds": common, "psnr_subset": round(at_time(r["eval_history"], common), 3)}
+
+
+def summary(results: list[dict], variants: list[str]) -> dict:
+    """Per dataset: each variant's mean over seeds, and each variant's paired difference to the first."""
+    out = {}
+    for d in dict.fromkeys(r["dataset"] for r in results):
+        rows = {v: sorted((r for r in results if r["dataset"] == d and r["variant"] == v), key=lambda r: r["seed"])
+                for v in variants}
+        first = rows[variants[0]]
+        out[d] = {}
+        for v, rs in rows.items():
+            if not rs:
+                continue
+            keys = [k for k in ("psnr", "ssim", "depth_l1", "within_1") if k in rs[0]["model"]]
+            entry = {k: round(float(np.mean([r["model"][k] for r in rs])), 4) for k in keys}
+            entry["equal_time_psnr_subset"] = round(float(np.mean([r["equal_time"]["psnr_subset"] for r in rs])), 3)
+            entry["train_s"] = round(float(np.mean([r["train_s"] for r in rs])), 1)
+            if v != variants[0]:
+                diff = [a["model"]["psnr"] - b["model"]["psnr"] for a, b in zip(first, rs)]
+                entry[f"psnr_{variants[0]}_minus_this"] = [round(x, 3) for x in diff]
+            out[d][v] = entry
+    return out
+
+
+def markdown(results: list[dict], meta: dict, variants: list[str]) -> str:
+    lines = [f"{meta['steps']} steps per run (equal steps), seeds {meta['seeds']}, {meta['threads']} thread(s), "
+             f"{meta['jobs']} run(s) at once; {meta['wall_minutes']} min in all; {meta['machine']}.",
+             "PSNR/SSIM/depth: full held-out images at the end. Equal time: PSNR of 2,048 fixed held-out pixels "
+             "at the time every run of the same dataset and seed had reached.", ""]
+    head = "| dataset | loss | seed | PSNR (dB) | SSIM | depth L1 (mm) | within 1σ | equal-time PSNR (s) | train s |"
+    lines += [head, "|" + " --- |" * (head.count("|") - 1)]
+    for r in sorted(results, key=lambda r: (r["dataset"], variants.index(r["variant"]), r["seed"])):
+        m = r["model"]
+        depth = f"{1000 * m['depth_l1']:.1f}" if "depth_l1" in m else "-"
+        within = f"{m['within_1']:.2f}" if "within_1" in m else "-"
+        lines.append(f"| {r['dataset']} | {r['variant']} | {r['seed']} | {m['psnr']:.2f} | {m['ssim']:.3f} | {depth} | "
+                     f"{within} | {r['equal_time']['psnr_subset']:.2f} ({r['equal_time']['seconds']:.0f}) | "
+                     f"{r['train_s']:.0f} |")
+    lines += ["", "Means over seeds, and the paired PSNR difference of the first loss minus each other, seed by seed:",
+              "", "| dataset | loss | PSNR (dB) | SSIM | depth L1 (mm) | equal-time PSNR | "
+              f"{variants[0]} minus this, per seed (dB) | paper PSNR / SSIM |", "|" + " --- |" * 8]
+    for d, per in meta["summary"].items():
+        for v, e in per.items():
+            paper = PAPER.get(d, {}).get(v)
+            depth = f"{1000 * e['depth_l1']:.1f}" if "depth_l1" in e else "-"
+            pairs = ", ".join(f"{x:+.2f}" for x in e.get(f"psnr_{variants[0]}_minus_this", [])) or "-"
+            lines.append(f"| {d} | {v} | {e['psnr']:.2f} | {e['ssim']:.3f} | {depth} | "
+                         f"{e['equal_time_psnr_subset']:.2f} | {pairs} | "
+                         f"{f'{paper[0]:.2f} / {paper[1]:.2f}' if paper else '-'} |")
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--datasets", default="fern", help="comma-separated: fern, synthetic, tum")
+    ap.add_argument("--variants", default="pnerf,dsnerf,photometric", help=f"comma-separated, of {list(VARIANTS)}")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--steps", type=int, default=14000, help="training steps of every run")
+    ap.add_argument("--views", type=int, default=10, help="training views (0 = every non-held-out frame)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
+    ap.add_argument("--name", default="losses", help="stem of the result files in benchmarks/results/")
+    args = ap.parse_args()
+    datasets, variants = args.datasets.split(","), args.variants.split(",")
+    seeds = [int(s) for s in args.seeds.split(",")]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown variants {unknown}; expected some of {list(VARIANTS)}")
+    missing = [d for d in datasets if d != "synthetic" and not PATHS.get(d, SHARED / "?").is_dir()]
+    if missing:
+        raise SystemExit(f"shared data not found for {missing} (expected under {SHARED})")
+    cache = OUT / "cache"
+    cache.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    sources = {d: prepare_synthetic(cache, False) if d == "synthetic" else d for d in datasets}
+    specs = [dict(dataset=d, source=sources[d], variant=v, seed=s, views=args.views, steps=args.steps,
+                  threads=args.threads, cache=str(cache))
+             for d in datasets for s in seeds for v in variants]
+    with ProcessPoolExecutor(args.jobs, multiprocessing.get_context("spawn"), max_tasks_per_child=1) as pool:
+        futures = [pool.submit(run_one, spec) for spec in specs]
+        for future in as_completed(futures):
+            r = future.result()
+            print(f"{r['dataset']:10s} {r['variant']:22s} seed {r['seed']} PSNR {r['model']['psnr']:.2f} "
+                  f"SSIM {r['model']['ssim']:.3f} {r['train_s']:.0f} s", flush=True)
+    results = [f.result() for f in futures]
+    add_equal_time(results)
+    import torch
+
+    meta = {"machine": f"{platform.machine()} {multiprocessing.cpu_count()} cores, torch {torch.__version__}",
+            "steps": args.steps, "seeds": seeds, "views": args.views, "threads": args.threads, "jobs": args.jobs,
+            "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
+            "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets},
+            "image_only": [d for d in datasets if d in IMAGE_ONLY]}
+    meta["summary"] = summary(results, variants)
+    (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
+    (OUT / f"{args.name}.md").write_text(markdown(results, meta, variants))
+    print((OUT / f"{args.name}.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
