@@ -1,8 +1,11 @@
-"""Geometry out of a trained field: point clouds with per-point depth sigma, meshes, PLY.
+"""Geometry out of a trained field: point clouds with per-point depth sigma, meshes with
+per-vertex depth sigma, PLY.
 
-Both come from renders at the training views: points are back-projected rendered depth
+Both come from renders at the training views (fused with the sensor's depth where there is
+one: :func:`open3d_pnerf.fusion.fuse_render_with_sensor`): points are back-projected depth
 kept where opacity is high and depth_std small; the mesh is Open3D TSDF fusion of the
-same rendered depth and colour, so no floater outside the observed frustums survives.
+same depth and colour, so no floater outside the observed frustums survives; each vertex
+takes the sigma of the nearest of those points.
 """
 
 from __future__ import annotations
@@ -10,6 +13,8 @@ from __future__ import annotations
 import matplotlib
 import numpy as np
 import open3d as o3d
+import plyfile
+from scipy.spatial import cKDTree
 
 from ._files import atomic_write
 from .camera import backproject
@@ -57,9 +62,50 @@ def uncertainty_colors(sigma: np.ndarray, vmax: float | None = None, cmap: str =
     return matplotlib.colormaps[cmap](np.clip(sigma / max(vmax, 1e-9), 0, 1))[:, :3]
 
 
-def write_mesh_ply(path, mesh: o3d.geometry.TriangleMesh) -> None:
-    """Write a mesh as binary PLY, atomically."""
-    atomic_write(path, lambda p: o3d.io.write_triangle_mesh(p, mesh, write_ascii=False))
+def vertex_sigma(mesh: o3d.geometry.TriangleMesh, points: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """(V,) float32 sigma (m) of each mesh vertex: that of the nearest of `points` (M, 3) with
+    `sigma` (M,) (the depth points the mesh was fused from); empty without points."""
+    vertices = np.asarray(mesh.vertices)
+    if not len(points) or not len(vertices):
+        return np.full(len(vertices), np.nan, np.float32)
+    return np.asarray(sigma, np.float32)[cKDTree(points).query(vertices)[1]]
+
+
+def write_mesh_ply(path, mesh: o3d.geometry.TriangleMesh, sigma: np.ndarray | None = None) -> None:
+    """Write a mesh as binary PLY, atomically. Given `sigma` (V,) (m), each vertex also gets a
+    float property `depth_sigma` beside x, y, z and uchar red, green, blue (Open3D's mesh
+    writers drop extra vertex properties, so this one writes it with plyfile): Open3D's mesh
+    readers, MeshLab and trimesh read the mesh, ``o3d.t.io.read_point_cloud`` and plyfile
+    the per-vertex sigma too."""
+    if sigma is None:
+        atomic_write(path, lambda p: o3d.io.write_triangle_mesh(p, mesh, write_ascii=False))
+        return
+    vertices = np.asarray(mesh.vertices, np.float32)
+    sigma = np.asarray(sigma, np.float32)
+    if sigma.shape != (len(vertices),):
+        raise ValueError(f"sigma must have one value per vertex ({len(vertices)},), got {sigma.shape}")
+    fields = [("x", "f4"), ("y", "f4"), ("z", "f4")]
+    if mesh.has_vertex_colors():
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vertex = np.empty(len(vertices), fields + [("depth_sigma", "f4")])
+    for k, name in enumerate("xyz"):
+        vertex[name] = vertices[:, k]
+    if mesh.has_vertex_colors():
+        rgb = (np.clip(np.asarray(mesh.vertex_colors), 0, 1) * 255).round().astype(np.uint8)
+        vertex["red"], vertex["green"], vertex["blue"] = rgb.T
+    vertex["depth_sigma"] = sigma
+    faces = np.empty(len(mesh.triangles), [("vertex_indices", "i4", (3,))])
+    faces["vertex_indices"] = np.asarray(mesh.triangles, np.int32)
+    data = plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(faces, "face")])
+    atomic_write(path, lambda p: data.write(p))
+
+
+def read_mesh_ply(path) -> tuple[o3d.geometry.TriangleMesh, np.ndarray | None]:
+    """Read a mesh PLY (Open3D) and its per-vertex `depth_sigma` when it has one: (mesh, sigma or None)."""
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    t = o3d.t.io.read_point_cloud(str(path))
+    sigma = t.point.depth_sigma.numpy()[:, 0].copy() if "depth_sigma" in t.point else None
+    return mesh, sigma
 
 
 def write_point_cloud_ply(path, cloud: o3d.geometry.PointCloud, sigma: np.ndarray | None = None) -> None:

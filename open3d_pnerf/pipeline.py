@@ -290,7 +290,7 @@ def finish(recon: Reconstruction, sequence: RGBDSequence) -> Reconstruction:
     config asks for it) and export the mesh and point cloud."""
     if recon.config.export.calibrate_depth_sigma and sequence.has_depth:
         recon.calibrate_depth_sigma(sequence)
-    recon.export_geometry(progress=recon.config.progress)
+    recon.export_geometry(progress=recon.config.progress, sequence=sequence)
     return recon
 
 

@@ -3,8 +3,8 @@ its renders, its depth-sigma calibration, and its folder on disk.
 
 A saved reconstruction is a folder: ``reconstruction.json`` (format version, config, box,
 intrinsic, frame split), ``model.pt`` (the field's weights only), ``poses.npy``,
-``covariances.npy``, ``color_gains.npy``, ``mesh.ply``, ``point_cloud.ply`` (with per-point
-``depth_sigma``), and the trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's
+``covariances.npy``, ``color_gains.npy``, ``mesh.ply`` (with per-vertex ``depth_sigma``),
+``point_cloud.ply`` (with per-point ``depth_sigma``), and the trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's
 ``trajectory.json`` (a PinholeCameraTrajectory with the training intrinsic).
 """
 
@@ -20,7 +20,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ._files import atomic_write_all, read_json_object
-from .camera import camera_pose, check_intrinsic, intrinsic_matrix, pinhole, pose_to_extrinsic, scale_intrinsic
+from .camera import backproject, camera_pose, check_intrinsic, intrinsic_matrix, pinhole, pose_to_extrinsic, scale_intrinsic
 from .config import ReconstructionConfig
 from .data.nerfstudio import write_nerfstudio
 from .data.sequence import RGBDSequence, check_sequence
@@ -29,12 +29,16 @@ from .errors import CheckpointError, ConfigError, InputError
 from .export import (
     mesh_from_renders,
     point_cloud_from_renders,
+    read_mesh_ply,
     read_point_cloud_ply,
+    vertex_sigma,
     write_mesh_ply,
     write_point_cloud_ply,
 )
+from .fusion import fuse_render_with_sensor
 from .model import PNeRFModel, build_model
 from .rendering import Rays
+from .targets import SensorNoise
 from .training import safe_torch_load
 
 FORMAT_VERSION = 1
@@ -51,8 +55,10 @@ class Reconstruction:
 
     poses (N, 4, 4) camera-to-world and covariances (N, 6, 6) cover every frame of the
     input sequence; train_indices / holdout_indices say which trained. intrinsic is the
-    training-resolution ``o3d.camera.PinholeCameraIntrinsic``. depth_sigma_scale turns the
-    model's depth spread into a calibrated 1-sigma error (see calibrate_depth_sigma).
+    training-resolution ``o3d.camera.PinholeCameraIntrinsic``. depth_sigma_scale and
+    depth_sigma_floor turn the model's depth spread into a calibrated 1-sigma error (see
+    calibrate_depth_sigma). mesh_sigma (V,) and point_sigma (M,): the exported mesh's
+    per-vertex and point cloud's per-point depth sigma (m).
     color_gains (N, 3): each frame's camera exposure as per-channel gains on the rendered
     colour (learned for training frames, interpolated in time for the others; ones without
     exposure compensation); see :meth:`render`.
@@ -60,7 +66,8 @@ class Reconstruction:
 
     def __init__(self, model, config: ReconstructionConfig, poses, covariances, intrinsic, aabb,
                  train_indices, holdout_indices, timestamps=None, mesh=None, point_cloud=None,
-                 point_sigma=None, stats=None, depth_sigma_scale: float = 1.0, color_gains=None):
+                 point_sigma=None, stats=None, depth_sigma_scale: float = 1.0, color_gains=None, mesh_sigma=None,
+                 depth_sigma_floor: float = 0.0):
         if not isinstance(model, PNeRFModel):  # a bare field renders with the config's sampling
             model = PNeRFModel(model, config.sampling, config.loss)
         self.model = model
@@ -75,8 +82,10 @@ class Reconstruction:
         self.mesh = mesh
         self.point_cloud = point_cloud
         self.point_sigma = point_sigma
+        self.mesh_sigma = mesh_sigma
         self.stats = stats or {}
         self.depth_sigma_scale = float(depth_sigma_scale)
+        self.depth_sigma_floor = float(depth_sigma_floor)
         self.color_gains = np.ones((len(self.poses), 3)) if color_gains is None else np.asarray(color_gains, np.float64)
 
     @property
@@ -104,7 +113,7 @@ class Reconstruction:
             ("mesh", f"{len(self.mesh.triangles)} triangles" if self.mesh is not None else "none"),
             ("point cloud", f"{len(self.point_cloud.points)} points with depth sigma" if self.point_cloud is not None
              else "none"),
-            ("depth sigma scale", f"{self.depth_sigma_scale:.3g}"),
+            ("depth sigma", f"{self.depth_sigma_scale:.3g} x spread, floor {100 * self.depth_sigma_floor:.2g}% of depth"),
         ]
         return "\n".join(["| Reconstruction | |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in rows]) + "\n"
 
@@ -120,15 +129,15 @@ class Reconstruction:
         frame: index of one of the reconstruction's frames whose camera exposure the colour
         should have (``color_gains[frame]``); None gives the training frames' average exposure.
         Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m,
-        depth_std (H, W) m (the spread of the model's depth distribution along each ray,
-        times depth_sigma_scale: a calibrated 1-sigma error), opacity (H, W) in [0, 1].
+        depth_std (H, W) m (the spread of the model's depth distribution along each ray, made
+        a calibrated 1-sigma error by :meth:`calibrated_sigma`), opacity (H, W) in [0, 1].
         """
         pose, carried = self._camera(pose)
         intrinsic = check_intrinsic(intrinsic or carried or self.intrinsic)
         h, w = intrinsic.height, intrinsic.width
         v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
         out = self._render_pixels(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float(), chunk)
-        out["depth_std"] *= self.depth_sigma_scale
+        out["depth_std"] = self.calibrated_sigma(out["depth_std"], out["depth"])
         if frame is not None:
             if not (isinstance(frame, (int, np.integer)) and 0 <= frame < len(self.poses)):
                 raise InputError(f"frame must be a frame index in [0, {len(self.poses)}), got {frame!r}")
@@ -168,23 +177,35 @@ class Reconstruction:
         return {"z": (out["t"] / norms).cpu().numpy(), "edges": edges.cpu().numpy(), "mass": mass.cpu().numpy(),
                 "pdf": pdf.cpu().numpy(), "opacity": out["opacity"].cpu().numpy()}
 
+    def calibrated_sigma(self, spread: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """The 1-sigma depth error (m) of a raw depth spread (m) at z-depth `depth` (m):
+        sqrt((depth_sigma_scale * spread)^2 + (depth_sigma_floor * depth)^2)."""
+        return np.sqrt((self.depth_sigma_scale * spread) ** 2 + (self.depth_sigma_floor * depth) ** 2)
+
     def calibrate_depth_sigma(self, sequence: RGBDSequence, coverage: float = 0.683, frames: int = 8,
-                              pixels: int = 1024) -> float:
-        """Fit depth_sigma_scale so that `coverage` of training-view depth errors lie within 1 sigma.
+                              pixels: int = 1024, method: str = "likelihood") -> float:
+        """Fit how the model's depth spread becomes an error bar, on training frames only.
 
         The raw spread of the weights along a ray is set as much by sample spacing and grid
-        blur as by the data, so it is not an error bar by itself; one scale fitted on the
-        training frames makes it one (held-out frames are never used). sequence: the input
-        sequence (all frames, as given to reconstruct()); up to `frames` training frames are
-        read at the training resolution and `pixels` random pixels of each with sensor depth
-        and opacity > 0.5 are rendered. Sets and returns depth_sigma_scale (1.0 if no pixel).
+        blur as by the data, so it is not an error bar by itself. method "likelihood" (default)
+        fits depth_sigma_scale s and depth_sigma_floor f of sigma = sqrt((s spread)^2 + (f z)^2)
+        by maximum Gaussian likelihood of the depth errors: a predictive distribution right
+        across its range, not at one quantile (the relative floor covers errors the spread
+        does not see, e.g. a surface between the samples). method "quantile": f = 0 and s such
+        that `coverage` of the errors lie within 1 sigma (exact at that one quantile only).
+        sequence: the input sequence (all frames, as given to reconstruct()); up to `frames`
+        training frames are read at the training resolution and `pixels` random pixels of each
+        with sensor depth and opacity > 0.5 are rendered (held-out frames are never used).
+        Sets depth_sigma_scale and depth_sigma_floor; returns the scale (1.0, floor 0 if no pixel).
         """
+        if method not in ("likelihood", "quantile"):
+            raise InputError(f"method must be 'likelihood' or 'quantile', got {method!r}")
         check_sequence(sequence, len(self.poses), "calibrate_depth_sigma(): sequence", needs_depth=True)
         train = self.train_indices[evenly_spaced(len(self.train_indices), frames)]
         seq = sequence.select(train)
         seq = seq.scaled_by(self.config.image_scale)
         rng = np.random.default_rng(self.config.seed + 2)
-        ratios = []
+        errors, spreads, depths = [], [], []
         for k, i in enumerate(train):
             depth = seq[k].depth.reshape(-1)
             pix = np.flatnonzero(depth > 0)
@@ -193,10 +214,26 @@ class Reconstruction:
             uv = torch.as_tensor(np.stack([pix % w, pix // w], 1), dtype=torch.float32, device=self.device)
             out = self._render_pixels(self.poses[i], seq.intrinsic, uv[:, 0], uv[:, 1])
             ok = out["opacity"] > 0.5
-            ratios.append(np.abs(out["depth"] - depth[pix])[ok] / np.maximum(out["depth_std"][ok], 1e-6))
-        ratios = np.concatenate(ratios) if ratios else np.zeros(0)
-        self.depth_sigma_scale = float(np.quantile(ratios, coverage)) if ratios.size else 1.0
+            errors.append(np.abs(out["depth"] - depth[pix])[ok])
+            spreads.append(np.maximum(out["depth_std"][ok], 1e-6))
+            depths.append(depth[pix][ok])
+        err, spread, z = (np.concatenate(a) if a else np.zeros(0) for a in (errors, spreads, depths))
+        self.depth_sigma_scale, self.depth_sigma_floor = 1.0, 0.0
+        if err.size:
+            self.depth_sigma_scale = float(np.quantile(err / spread, coverage))
+            if method == "likelihood":
+                self.depth_sigma_scale, self.depth_sigma_floor = _likelihood_fit(err, spread, z,
+                                                                                 self.depth_sigma_scale)
         return self.depth_sigma_scale
+
+    def _in_box(self, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """A z-depth map (H, W) m with 0 where its point lies outside the scene box (stray far
+        returns the box left out)."""
+        pts, flat = backproject(depth, K, pose)
+        outside = flat[((pts < self.aabb[0]) | (pts > self.aabb[1])).any(1)]
+        depth = depth.copy()
+        depth.flat[outside] = 0
+        return depth
 
     def _rays(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic, u: torch.Tensor, v: torch.Tensor) -> Rays:
         """Rays of pixels (u, v) (R,) from a camera-to-world pose (4, 4), clipped to the scene box."""
@@ -214,18 +251,38 @@ class Reconstruction:
                           "o3d.camera.PinholeCameraParameters to render it as Open3D means it", stacklevel=3)
         return pose, intrinsic
 
-    def export_geometry(self, progress: bool = True) -> None:
+    def export_geometry(self, progress: bool = True, sequence: RGBDSequence | None = None) -> None:
         """Render training views (at most export.max_views, evenly spaced) at export.scale and
-        rebuild .mesh, .point_cloud, .point_sigma."""
+        rebuild .mesh, .mesh_sigma, .point_cloud, .point_sigma.
+
+        sequence: the input sequence (all frames, as given to reconstruct()); when it has depth
+        images, each view's rendered depth is fused per pixel with the sensor's depth (sigma of
+        :class:`~open3d_pnerf.targets.SensorNoise` with targets.depth_sigma_relative) by
+        :func:`~open3d_pnerf.fusion.fuse_render_with_sensor`: observed surfaces keep the
+        sensor's accuracy, the others come from the model, each with its fused sigma.
+        """
         cfg = self.config.export
-        intr = scale_intrinsic(self.intrinsic, cfg.scale)
+        frames = self.train_indices[evenly_spaced(len(self.train_indices), cfg.max_views)]
+        poses = self.poses[frames]
+        views = None
+        if sequence is not None:
+            check_sequence(sequence, len(self.poses), "export_geometry(): sequence")
+            if sequence.has_depth:
+                views = sequence.select(frames).scaled_by(self.config.image_scale * cfg.scale)
+        intr = views.intrinsic if views is not None else scale_intrinsic(self.intrinsic, cfg.scale)
         K = intrinsic_matrix(intr)
-        poses = self.poses[self.train_indices[evenly_spaced(len(self.train_indices), cfg.max_views)]]
         renders = [self.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
+        if views is not None:
+            noise = SensorNoise(relative=self.config.targets.depth_sigma_relative)
+            for k, r in enumerate(renders):
+                z = self._in_box(views[k].depth, K, poses[k])
+                sensor_sigma = np.sqrt(noise.sigma(z) ** 2 + noise.systematic_var(z))
+                renders[k] = fuse_render_with_sensor(r, z, sensor_sigma, cfg.min_opacity, cfg.max_point_std)
         self.point_cloud, self.point_sigma = point_cloud_from_renders(
             renders, poses, K, cfg.min_opacity, cfg.max_point_std, voxel_size=cfg.mesh_voxel_size / 2
         )
         self.mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, cfg.max_point_std)
+        self.mesh_sigma = vertex_sigma(self.mesh, np.asarray(self.point_cloud.points), self.point_sigma)
 
     def write_nerfstudio(self, path, sequence: RGBDSequence, progress: bool = False) -> Path:
         """Write the frames of `sequence` (the one reconstructed) with this reconstruction's poses
@@ -262,6 +319,7 @@ class Reconstruction:
             "timestamps": self.timestamps.tolist(),
             "stats": self.stats,
             "depth_sigma_scale": self.depth_sigma_scale,
+            "depth_sigma_floor": self.depth_sigma_floor,
         }
         weights = {k: v.cpu() for k, v in self.field.state_dict().items()}
         writes = {
@@ -276,7 +334,7 @@ class Reconstruction:
         }
         empty = []
         for name, geometry, write in (
-            ("mesh.ply", self.mesh, lambda p: write_mesh_ply(p, self.mesh)),
+            ("mesh.ply", self.mesh, lambda p: write_mesh_ply(p, self.mesh, self.mesh_sigma)),
             ("point_cloud.ply", self.point_cloud, lambda p: write_point_cloud_ply(p, self.point_cloud, self.point_sigma)),
         ):
             if geometry is not None and not geometry.is_empty():
@@ -322,14 +380,15 @@ class Reconstruction:
             field.load_state_dict(state)
         except (RuntimeError, KeyError, TypeError) as exc:
             raise CheckpointError(f"{d / 'model.pt'}: weights do not match the config ({exc})") from None
-        mesh = _read_ply(d / "mesh.ply", lambda p: o3d.io.read_triangle_mesh(str(p)))
+        mesh, mesh_sigma = _read_ply(d / "mesh.ply", read_mesh_ply) or (None, None)
         cloud, sigma = _read_ply(d / "point_cloud.ply", read_point_cloud_ply) or (None, None)
         gains = _load_array(d / "color_gains.npy", (n, 3)) if (d / "color_gains.npy").is_file() else None
         if gains is not None and not (gains > 0).all():
             raise CheckpointError(f"{d / 'color_gains.npy'}: colour gains must be > 0")
         return cls(model, config, _load_array(d / "poses.npy", (n, 4, 4)), _load_array(d / "covariances.npy", (n, 6, 6)),
                    intr, aabb, *indices, timestamps, mesh, cloud, sigma, meta.get("stats"),
-                   float(meta.get("depth_sigma_scale", 1.0)), gains)
+                   float(meta.get("depth_sigma_scale", 1.0)), gains, mesh_sigma,
+                   float(meta.get("depth_sigma_floor", 0.0)))
 
 
 def _read_meta(path: Path) -> dict:
@@ -375,3 +434,19 @@ def _depth_range(value, meta_path) -> np.ndarray | None:
         raise CheckpointError(f"{meta_path}: malformed metadata (depth_range {value!r} is not [near, far], "
                               "0 < near < far)")
     return rng
+
+
+def _likelihood_fit(err: np.ndarray, spread: np.ndarray, z: np.ndarray, scale0: float) -> tuple[float, float]:
+    """(s, f) >= 0 minimising the mean Gaussian negative log-likelihood of errors `err` under
+    sigma = sqrt((s spread)^2 + (f z)^2); all (M,) metres; starts from s = scale0, f = 0.1%."""
+    from scipy.optimize import minimize
+
+    def nll(log_params):
+        s, f = np.exp(log_params)
+        var = (s * spread) ** 2 + (f * z) ** 2 + 1e-12
+        return float(np.mean(0.5 * err**2 / var + 0.5 * np.log(var)))
+
+    start = np.log([max(scale0, 1e-6), 1e-3])
+    best = minimize(nll, start, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-9, "maxiter": 2000})
+    s, f = np.exp(best.x if best.fun <= nll(start) else start)
+    return float(s), float(f)

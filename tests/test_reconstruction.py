@@ -484,26 +484,45 @@ def test_load_rejects_a_malicious_model_file(saved, tmp_path):
 
 # -- depth-sigma calibration ---------------------------------------------------------------------
 @pytest.mark.slow
-def test_depth_std_is_the_model_spread_times_the_calibration_scale(recon):
+def test_depth_std_is_the_scaled_model_spread_with_a_relative_floor(recon):
     pose = recon.poses[recon.train_indices[0]]
-    scale = recon.depth_sigma_scale
+    scale, floor = recon.depth_sigma_scale, recon.depth_sigma_floor
     try:
-        recon.depth_sigma_scale = 1.0
+        recon.depth_sigma_scale, recon.depth_sigma_floor = 1.0, 0.0
         raw = recon.render(pose)
         recon.depth_sigma_scale = 2.5
         scaled = recon.render(pose)
+        recon.depth_sigma_floor = 0.01
+        floored = recon.render(pose)
     finally:
-        recon.depth_sigma_scale = scale
+        recon.depth_sigma_scale, recon.depth_sigma_floor = scale, floor
     np.testing.assert_allclose(scaled["depth_std"], 2.5 * raw["depth_std"], rtol=1e-5)
+    np.testing.assert_allclose(floored["depth_std"], np.hypot(2.5 * raw["depth_std"], 0.01 * raw["depth"]), rtol=1e-5)
     np.testing.assert_array_equal(scaled["depth"], raw["depth"])
 
 
+def test_likelihood_fit_recovers_the_scale_and_floor_of_known_errors():
+    """Errors drawn from N(0, (s spread)^2 + (f z)^2) with s = 2.5, f = 1%: the fit finds both."""
+    from open3d_pnerf.reconstruction import _likelihood_fit
+
+    rng = np.random.default_rng(0)
+    spread = rng.uniform(0.001, 0.05, 20000)
+    z = rng.uniform(0.5, 4.0, 20000)
+    err = np.abs(rng.normal(0, np.hypot(2.5 * spread, 0.01 * z)))
+    s, f = _likelihood_fit(err, spread, z, scale0=1.0)
+    assert s == pytest.approx(2.5, rel=0.03) and f == pytest.approx(0.01, rel=0.05)
+
+
 @pytest.mark.slow
-def test_calibration_puts_68_percent_of_training_depth_errors_within_one_sigma(recon, sample):
-    scale = recon.depth_sigma_scale
+def test_calibration_fits_on_training_frames_and_quantile_puts_68_percent_within_one_sigma(recon, sample):
+    scale, floor = recon.depth_sigma_scale, recon.depth_sigma_floor
     try:
-        fitted = recon.calibrate_depth_sigma(sample)
-        assert fitted == recon.depth_sigma_scale and 0 < fitted < 10
+        with pytest.raises(InputError, match="method must be"):
+            recon.calibrate_depth_sigma(sample, method="bogus")
+        recon.calibrate_depth_sigma(sample)  # the default: maximum likelihood, scale and floor
+        assert 0 < recon.depth_sigma_scale < 10 and 0 <= recon.depth_sigma_floor < 0.2
+        fitted = recon.calibrate_depth_sigma(sample, method="quantile")
+        assert fitted == recon.depth_sigma_scale and 0 < fitted < 10 and recon.depth_sigma_floor == 0
         train = sample.select(recon.train_indices).at_scale(recon.config.image_scale)
         inside = []
         for k, i in enumerate(recon.train_indices):  # every pixel, not only the fitted subset
@@ -512,13 +531,54 @@ def test_calibration_puts_68_percent_of_training_depth_errors_within_one_sigma(r
             inside.append(np.abs(out["depth"] - depth)[ok] <= out["depth_std"][ok])
         assert abs(np.concatenate(inside).mean() - 0.683) < 0.05
     finally:
-        recon.depth_sigma_scale = scale
+        recon.depth_sigma_scale, recon.depth_sigma_floor = scale, floor
 
 
 @pytest.mark.slow
 def test_saved_reconstruction_keeps_its_calibration(recon, saved):
     assert recon.depth_sigma_scale != 1.0  # reconstruct() calibrates by default
-    assert Reconstruction.load(saved).depth_sigma_scale == pytest.approx(recon.depth_sigma_scale)
+    loaded = Reconstruction.load(saved)
+    assert loaded.depth_sigma_scale == pytest.approx(recon.depth_sigma_scale)
+    assert loaded.depth_sigma_floor == pytest.approx(recon.depth_sigma_floor)
+
+
+@pytest.mark.slow
+def test_mesh_ply_carries_a_per_vertex_sigma_that_open3d_and_plyfile_read(recon, saved):
+    assert recon.mesh_sigma.shape == (len(recon.mesh.vertices),) and (recon.mesh_sigma > 0).all()
+    mesh = o3d.io.read_triangle_mesh(str(saved / "mesh.ply"))  # Open3D still reads the mesh and colours
+    assert len(mesh.triangles) == len(recon.mesh.triangles) and mesh.has_vertex_colors()
+    t = o3d.t.io.read_point_cloud(str(saved / "mesh.ply"))
+    np.testing.assert_allclose(t.point.depth_sigma.numpy()[:, 0], recon.mesh_sigma)
+    ply = plyfile.PlyData.read(str(saved / "mesh.ply"))
+    np.testing.assert_allclose(ply["vertex"]["depth_sigma"], recon.mesh_sigma)
+    np.testing.assert_allclose(Reconstruction.load(saved).mesh_sigma, recon.mesh_sigma)
+
+
+@pytest.mark.slow
+def test_export_fused_with_the_sensor_keeps_its_accuracy_where_it_saw(recon, sample):
+    """reconstruct() fuses each export view's rendered depth with the sensor's: the exported
+    points lie closer to the sensor's own surface than the model-only export's, and every
+    point carries the fused sigma (no wider than the sensor's or the model's)."""
+    from scipy.spatial import cKDTree
+
+    train = sample.select(recon.train_indices).at_scale(recon.config.image_scale * recon.config.export.scale)
+    sensor = np.concatenate([backproject(train[k].depth, train.K, recon.poses[i], train[k].depth > 0)[0]
+                             for k, i in enumerate(recon.train_indices)])
+    tree = cKDTree(sensor)
+    fused = np.asarray(recon.point_cloud.points)  # reconstruct() exported with the sequence
+    fused_sigma = recon.point_sigma.copy()
+    try:
+        recon.export_geometry(progress=False)  # model only
+        model_only = np.asarray(recon.point_cloud.points)
+    finally:
+        recon.export_geometry(progress=False, sequence=sample)
+    d_fused, d_model = tree.query(fused)[0], tree.query(model_only)[0]
+    print(f"median distance to the sensor's points: fused {1000 * np.median(d_fused):.1f} mm, "
+          f"model only {1000 * np.median(d_model):.1f} mm")
+    assert np.median(d_fused) < 0.5 * np.median(d_model)
+    assert len(fused) >= len(model_only)  # the sensor adds what the model is not sure of
+    assert np.isfinite(fused_sigma).all() and (fused_sigma > 0).all()
+    np.testing.assert_allclose(np.sort(recon.point_sigma), np.sort(fused_sigma))  # voxel order varies
 
 
 # -- long sequences: memory-mapped targets, bounded export ---------------------------------------

@@ -1,0 +1,66 @@
+"""Per-pixel fusion of two Gaussian depth estimates: the sensor's measured depth and the
+model's rendered depth, each with its sigma, before surfaces are extracted (export).
+
+Where both exist and agree, the product of the two Gaussians (inverse-variance weighting)
+keeps the more certain one's accuracy and narrows the sigma; where only one exists (the
+sensor saw nothing there, or the model is not confident) that one is kept as it is; where
+they disagree beyond what their sigmas allow (an outlier, a floater, an occlusion edge one of
+them blurs), averaging would put the surface where neither saw it, so the more certain one
+is kept.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+
+
+def fuse_gaussians(mean_a, sigma_a, mean_b, sigma_b, gate: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """Fuse N(mean_a, sigma_a^2) and N(mean_b, sigma_b^2) element by element.
+
+    All inputs broadcast to one shape (any units, the same for all). An estimate is missing
+    where its mean is not finite or its sigma is not a finite number > 0. Returns (mean,
+    sigma): mean = (a / sa^2 + b / sb^2) / (1 / sa^2 + 1 / sb^2) and sigma = (1 / sa^2 +
+    1 / sb^2)^-1/2 where both exist and |a - b| <= gate * sqrt(sa^2 + sb^2); the estimate with
+    the smaller sigma where both exist but disagree by more; the one that exists where only one
+    does; NaN (both) where neither does.
+    """
+    if not gate > 0:
+        raise InputError(f"gate must be > 0 (sigmas of disagreement), got {gate!r}")
+    a, sa, b, sb = np.broadcast_arrays(*(np.asarray(x, np.float64) for x in (mean_a, sigma_a, mean_b, sigma_b)))
+    has_a = np.isfinite(a) & np.isfinite(sa) & (sa > 0)
+    has_b = np.isfinite(b) & np.isfinite(sb) & (sb > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wa, wb = np.where(has_a, 1 / sa**2, 0.0), np.where(has_b, 1 / sb**2, 0.0)
+        fused = (np.where(has_a, a, 0) * wa + np.where(has_b, b, 0) * wb) / (wa + wb)
+        fused_sigma = 1 / np.sqrt(wa + wb)
+        agree = np.abs(a - b) <= gate * np.sqrt(sa**2 + sb**2)
+    a_better = sa <= sb
+    both = has_a & has_b
+    take_a = (has_a & ~has_b) | (both & ~agree & a_better)
+    take_b = (has_b & ~has_a) | (both & ~agree & ~a_better)
+    mean = np.where(take_a, a, np.where(take_b, b, np.where(both, fused, np.nan)))
+    sigma = np.where(take_a, sa, np.where(take_b, sb, np.where(both, fused_sigma, np.nan)))
+    return mean, sigma
+
+
+def fuse_render_with_sensor(render: dict, depth: np.ndarray, depth_sigma: np.ndarray, min_opacity: float,
+                            max_std: float) -> dict:
+    """A render's depth fused per pixel with the sensor's (:func:`fuse_gaussians`).
+
+    render: color (H, W, 3), depth and depth_std (H, W) z metres, opacity (H, W) (as
+    :meth:`Reconstruction.render` returns); its depth counts where opacity >= min_opacity
+    and depth_std <= max_std. depth: (H, W) sensor z-depth metres (0 = none); depth_sigma:
+    its (H, W) sigma (m). Returns a new dict with the fused depth and depth_std (0 and inf
+    where neither has one) and opacity 1 where the fused depth exists, 0 elsewhere; colour
+    as rendered.
+    """
+    if depth.shape != render["depth"].shape:
+        raise InputError(f"sensor depth {depth.shape} and render {render['depth'].shape} differ in size")
+    confident = (render["opacity"] >= min_opacity) & (render["depth_std"] <= max_std)
+    mean, sigma = fuse_gaussians(np.where(confident, render["depth"], np.nan), render["depth_std"],
+                                 np.where(depth > 0, depth, np.nan), depth_sigma)
+    has = np.isfinite(mean)
+    return {**render, "depth": np.where(has, mean, 0).astype(np.float32),
+            "depth_std": np.where(has, sigma, np.inf).astype(np.float32), "opacity": has.astype(np.float32)}
