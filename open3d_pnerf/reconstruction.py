@@ -256,10 +256,12 @@ class Reconstruction:
         rebuild .mesh, .mesh_sigma, .point_cloud, .point_sigma.
 
         sequence: the input sequence (all frames, as given to reconstruct()); when it has depth
-        images, each view's rendered depth is fused per pixel with the sensor's depth (sigma of
-        :class:`~open3d_pnerf.targets.SensorNoise` with targets.depth_sigma_relative) by
-        :func:`~open3d_pnerf.fusion.fuse_render_with_sensor`: observed surfaces keep the
-        sensor's accuracy, the others come from the model, each with its fused sigma.
+        images, each view's rendered depth is fused per pixel with the sensor's depth by
+        :func:`~open3d_pnerf.fusion.fuse_render_with_sensor`, with the sensor's random sigma
+        (:class:`~open3d_pnerf.targets.SensorNoise`); its systematic part (targets.
+        depth_sigma_relative) is common to both, the model having learned from this sensor,
+        so it is added to the fused variance afterwards: observed surfaces keep the sensor's
+        accuracy, the others come from the model, each with its fused sigma.
         """
         cfg = self.config.export
         frames = self.train_indices[evenly_spaced(len(self.train_indices), cfg.max_views)]
@@ -276,8 +278,12 @@ class Reconstruction:
             noise = SensorNoise(relative=self.config.targets.depth_sigma_relative)
             for k, r in enumerate(renders):
                 z = self._in_box(views[k].depth, K, poses[k])
-                sensor_sigma = np.sqrt(noise.sigma(z) ** 2 + noise.systematic_var(z))
-                renders[k] = fuse_render_with_sensor(r, z, sensor_sigma, cfg.min_opacity, cfg.max_point_std)
+                # the model learned from this sensor, so its systematic error is common to both:
+                # fuse the independent (random) parts, then add the common part back
+                fused = fuse_render_with_sensor(r, z, noise.sigma(z), cfg.min_opacity, cfg.max_point_std)
+                common = np.where(z > 0, noise.systematic_var(fused["depth"]), 0)
+                fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
+                renders[k] = fused
         self.point_cloud, self.point_sigma = point_cloud_from_renders(
             renders, poses, K, cfg.min_opacity, cfg.max_point_std, voxel_size=cfg.mesh_voxel_size / 2
         )
