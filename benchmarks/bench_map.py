@@ -82,6 +82,9 @@ def run_one(spec: dict) -> dict:
     out["tsdf_field_like"] = {k: comparison.table["tsdf"][k] for k in ("depth_l1", "hit_fraction")}
     out["meshes"] = {}
     for name, mesh in meshes.items():
+        if mesh is None or not mesh.has_triangles():  # no confident surface (e.g. colour only, model-only export)
+            out["meshes"][name] = {"depth_l1": float("nan"), "coverage": 0.0}
+            continue
         entry = mesh_on_heldout(mesh, recon, seq)
         if reference is not None:
             g = geometry_metrics(mesh, reference)
