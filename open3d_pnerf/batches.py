@@ -9,7 +9,7 @@ from collections import OrderedDict
 import numpy as np
 import torch
 
-from .camera import ray_norms
+from .camera import camera_rays, pixel_grid, ray_norms
 from .data.sequence import RGBDSequence
 from .targets import DepthTargets
 
@@ -57,7 +57,6 @@ class RayBatcher:
             raise ValueError(f"target_share must be in [0, 1), got {target_share!r}")
         self.sequence, self.targets, self.device = sequence, targets, device
         self.height, self.width = sequence.image_size
-        self.K = np.asarray(sequence.K, np.float64)
         self.norms = torch.as_tensor(ray_norms(sequence.K, self.height, self.width), device=device).view(-1)
         self.capacity = min(cache_frames, len(sequence))
         self.refresh_every = refresh_every
@@ -94,9 +93,11 @@ class RayBatcher:
             valid = torch.as_tensor(np.asarray(t.valid[i]), device=self.device).view(-1)
             norms = self.norms
             if self.offsets is not None:  # metres along the ray per metre of depth, at the exact spots
-                self.offsets[slot] = torch.as_tensor(np.asarray(t.offset[i]), device=self.device).view(-1, 2)
-                u, v = self._pixel_grid()
-                norms = self._norms_at(u + self.offsets[slot, :, 0], v + self.offsets[slot, :, 1])
+                offset = np.asarray(t.offset[i])
+                u, v = pixel_grid(self.height, self.width)
+                norms = np.linalg.norm(camera_rays(self.sequence.K, u + offset[..., 0], v + offset[..., 1]), axis=-1)
+                norms = torch.as_tensor(norms, dtype=torch.float32, device=self.device).view(-1)
+                self.offsets[slot] = torch.as_tensor(offset, device=self.device).view(-1, 2)
             mean = torch.as_tensor(np.asarray(t.mean[i]), device=self.device).view(-1) * norms
             self.means[slot] = torch.where(valid, mean, torch.full_like(mean, float("nan")))
             self.sigmas[slot] = torch.as_tensor(np.asarray(t.sigma[i]), device=self.device).view(-1) * norms
@@ -105,16 +106,6 @@ class RayBatcher:
             self.target_pixels[slot] = valid.nonzero()[:, 0].cpu()
             self._target_index = None
         self.cache[i] = slot
-
-    def _pixel_grid(self) -> tuple[torch.Tensor, torch.Tensor]:
-        pix = torch.arange(self.height * self.width, device=self.device)
-        return (pix % self.width).float(), (pix // self.width).float()
-
-    def _norms_at(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """||K^-1 [u, v, 1]|| at image coordinates u, v."""
-        x = (u - self.K[0, 2]) / self.K[0, 0]
-        y = (v - self.K[1, 2]) / self.K[1, 1]
-        return torch.sqrt(x * x + y * y + 1)
 
     def _draw_target_pixels(self) -> bool:
         """Whether batches draw target_share of their rays among the target pixels: targets

@@ -179,6 +179,10 @@ class TargetsConfig:
     widens every depth target by relative * z in quadrature, after multi-view fusion
     (calibration and registration errors are shared by all views). 0 = random noise only."""
 
+    def sensor_noise(self) -> SensorNoise:
+        """The sensor noise model with this systematic term (targets and export use it)."""
+        return SensorNoise(relative=self.depth_sigma_relative)
+
     def checks(self) -> list[Check]:
         return [("depth_sigma_relative", lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)")]
 

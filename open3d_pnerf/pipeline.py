@@ -28,7 +28,7 @@ from .pose_refinement import follow_refinement
 from .reconstruction import Reconstruction, evenly_spaced
 from .rendering import Rays
 from .rendering.exposure import interpolate_gains
-from .targets import DepthTargets, SensorNoise, depth_targets
+from .targets import DepthTargets, depth_targets
 from .targets.storage import BYTES_PER_PIXEL
 from .tracking import Trajectory, track
 from .training import Trainer, read_checkpoint
@@ -119,7 +119,7 @@ def build_targets(train_seq: RGBDSequence, config: ReconstructionConfig, poses: 
     """The depth targets of the training frames (dense fusion, or the SfM points of an image-only
     sequence). Built for every loss: they also bound the scene box."""
     return depth_targets(train_seq, poses=poses, covariances=covariances,
-                         sensor=SensorNoise(relative=config.targets.depth_sigma_relative), storage_dir=storage_dir,
+                         sensor=config.targets.sensor_noise(), storage_dir=storage_dir,
                          progress=config.progress)
 
 

@@ -38,7 +38,6 @@ from .export import (
 from .fusion import fuse_render_with_sensor
 from .model import PNeRFModel, build_model
 from .rendering import Rays
-from .targets import SensorNoise
 from .training import safe_torch_load
 
 FORMAT_VERSION = 1
@@ -275,7 +274,7 @@ class Reconstruction:
         K = intrinsic_matrix(intr)
         renders = [self.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
         if views is not None:
-            noise = SensorNoise(relative=self.config.targets.depth_sigma_relative)
+            noise = self.config.targets.sensor_noise()
             for k, r in enumerate(renders):
                 z = self._in_box(views[k].depth, K, poses[k])
                 # the model learned from this sensor, so its systematic error is common to both:

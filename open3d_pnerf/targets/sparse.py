@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import check_covariances, check_poses, nearest_per_pixel, project
+from ..camera import camera_rays, check_covariances, check_poses, nearest_per_pixel, project
 from ..errors import InputError
 from .storage import DepthTargets, allocate
 
@@ -119,7 +119,7 @@ def sparse_depth_targets(
         vv = vdir[:, :, None] * vdir[:, None, :]
         cov = s_lat[:, None, None] ** 2 * (np.eye(3) - vv) + s_dep[:, None, None] ** 2 * vv
         cov += rot @ covs[i, 3:, 3:] @ rot.T
-        d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+        d_cam = camera_rays(K, u, v)
         d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
         t, var = gaussian_along_ray(centres[i], d_cam @ rot.T, xyz[idx], cov)
         z, sigma = t * d_cam[:, 2], np.sqrt(var) * d_cam[:, 2]
