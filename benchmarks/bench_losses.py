@@ -25,13 +25,12 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
-import platform
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
-from bench_suite import HOLDOUT_EVERY, IMAGE_ONLY, IMAGE_SCALE, OUT, PATHS, SHARED, load, poses_for, prepare_synthetic
+from bench_suite import (HOLDOUT_EVERY, IMAGE_ONLY, IMAGE_SCALE, OUT, PATHS, SHARED, load, machine, poses_for,
+                         prepare_synthetic, run_in_processes)
 
 VARIANTS = {  # name -> config overrides
     "pnerf": dict(loss="pnerf"),
@@ -159,17 +158,11 @@ def main():
     specs = [dict(dataset=d, source=sources[d], variant=v, seed=s, views=args.views, steps=args.steps,
                   threads=args.threads, cache=str(cache))
              for d in datasets for s in seeds for v in variants]
-    with ProcessPoolExecutor(args.jobs, multiprocessing.get_context("spawn"), max_tasks_per_child=1) as pool:
-        futures = [pool.submit(run_one, spec) for spec in specs]
-        for future in as_completed(futures):
-            r = future.result()
-            print(f"{r['dataset']:10s} {r['variant']:22s} seed {r['seed']} PSNR {r['model']['psnr']:.2f} "
-                  f"SSIM {r['model']['ssim']:.3f} {r['train_s']:.0f} s", flush=True)
-    results = [f.result() for f in futures]
+    results = run_in_processes(run_one, specs, args.jobs, lambda r: (
+        f"{r['dataset']:10s} {r['variant']:22s} seed {r['seed']} PSNR {r['model']['psnr']:.2f} "
+        f"SSIM {r['model']['ssim']:.3f} {r['train_s']:.0f} s"))
     add_equal_time(results)
-    import torch
-
-    meta = {"machine": f"{platform.machine()} {multiprocessing.cpu_count()} cores, torch {torch.__version__}",
+    meta = {"machine": machine(),
             "steps": args.steps, "seeds": seeds, "views": args.views, "threads": args.threads, "jobs": args.jobs,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
             "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets},

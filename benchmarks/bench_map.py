@@ -25,13 +25,11 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
-import platform
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
-from bench_suite import OUT, PATHS, SHARED, load, poses_for, prepare_synthetic
+from bench_suite import OUT, PATHS, SHARED, load, machine, poses_for, prepare_synthetic, run_in_processes
 
 VIEWS = {"synthetic": 10, "synthetic_all": 0, "tum": 0, "7scenes": 0}  # training views (0 = all)
 MESH_ONLY = {"synthetic_all"}  # datasets run with pnerf only (the all-views mesh against the TSDF's)
@@ -148,16 +146,10 @@ def main():
     specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else d, loss=loss, seed=args.seed,
                   threads=args.threads, preset=args.preset, cache=str(cache))
              for d in datasets for loss in losses if d not in MESH_ONLY or loss == "pnerf"]
-    with ProcessPoolExecutor(args.jobs, multiprocessing.get_context("spawn"), max_tasks_per_child=1) as pool:
-        futures = [pool.submit(run_one, spec) for spec in specs]
-        for future in as_completed(futures):
-            r = future.result()
-            print(f"{r['dataset']:14s} {r['loss']:12s} fused {r['meshes']['fused']} tsdf {r['meshes']['tsdf']} "
-                  f"field {r['field']}", flush=True)
-    results = [f.result() for f in futures]
-    import torch
-
-    meta = {"machine": f"{platform.machine()} {multiprocessing.cpu_count()} cores, torch {torch.__version__}",
+    results = run_in_processes(run_one, specs, args.jobs, lambda r: (
+        f"{r['dataset']:14s} {r['loss']:12s} fused {r['meshes']['fused']} tsdf {r['meshes']['tsdf']} "
+        f"field {r['field']}"))
+    meta = {"machine": machine(),
             "seed": args.seed, "threads": args.threads, "jobs": args.jobs, "preset": args.preset,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS}
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))

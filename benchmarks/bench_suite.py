@@ -61,6 +61,24 @@ VARIANTS = {  # name -> config overrides
 }
 
 
+def run_in_processes(run_one, specs: list[dict], jobs: int, summary) -> list[dict]:
+    """run_one(spec) for every spec, each in a fresh process (so peak RSS is per run), `jobs` at
+    once; prints summary(result) as each ends; returns the results in the order of `specs`."""
+    with ProcessPoolExecutor(jobs, multiprocessing.get_context("spawn"), max_tasks_per_child=1) as pool:
+        futures = [pool.submit(run_one, spec) for spec in specs]
+        for future in as_completed(futures):
+            print(summary(future.result()), flush=True)
+    return [f.result() for f in futures]
+
+
+def machine() -> str:
+    """This machine and torch, for a result file's meta."""
+    import torch
+
+    return (f"{platform.machine()} {platform.processor() or ''} {multiprocessing.cpu_count()} cores, "
+            f"torch {torch.__version__}").replace("  ", " ")
+
+
 def load(dataset: str, cache: Path):
     """(sequence, reference surface or None) for a dataset name; the synthetic one from its
     folder in the cache (see prepare_synthetic)."""
@@ -243,16 +261,9 @@ def main():
                     source=sources[spec["dataset"]])
         if spec["variant"] == "pnerf" and spec["views"] == views and spec["poses"] in ("gt", "sfm"):
             spec["figure"] = str(OUT / f"{stem}_{spec['dataset']}_frame.png")
-    with ProcessPoolExecutor(args.jobs, multiprocessing.get_context("spawn"), max_tasks_per_child=1) as pool:
-        futures = [pool.submit(run_one, spec) for spec in specs]  # fresh process per run: per-run peak RSS
-        for future in as_completed(futures):
-            print(summary_line(future.result()), flush=True)
-    results = [f.result() for f in futures]
+    results = run_in_processes(run_one, specs, args.jobs, summary_line)
     tracked = {d: float(np.load(cache / f"tracked_{s}.npz")["ate"]) for d, s in sources.items() if d not in IMAGE_ONLY}
-    import torch
-
-    meta = {"machine": f"{platform.machine()} {platform.processor() or ''} {multiprocessing.cpu_count()} cores, "
-                       f"torch {torch.__version__}".replace("  ", " "),
+    meta = {"machine": machine(),
             "budget_s": budget, "threads": args.threads, "jobs": args.jobs, "seed": args.seed,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
             "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets}, "views": views,
