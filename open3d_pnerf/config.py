@@ -210,7 +210,9 @@ class ExportConfig:
     """Scale the model's depth spread so that 68.3% of training-view depth errors fall within
     1 sigma (Reconstruction.calibrate_depth_sigma)."""
     scale: float = 0.5
-    """Resolution of the renders used for mesh and point-cloud export, relative to training."""
+    """Resolution of the renders used for mesh and point-cloud export, relative to training
+    (fused with sensor depth, the export works at the training resolution: the sensor keeps
+    its own and the renders fill its holes)."""
     max_views: int = 48
     """Render at most this many training views (evenly spaced): bounds export time and memory."""
     mesh_voxel_size: float = 0.01

@@ -49,18 +49,34 @@ def fuse_render_with_sensor(render: dict, depth: np.ndarray, depth_sigma: np.nda
                             max_std: float) -> dict:
     """A render's depth fused per pixel with the sensor's (:func:`fuse_gaussians`).
 
-    render: color (H, W, 3), depth and depth_std (H, W) z metres, opacity (H, W) (as
+    render: color (h, w, 3), depth and depth_std (h, w) z metres, opacity (h, w) (as
     :meth:`Reconstruction.render` returns); its depth counts where opacity >= min_opacity
     and depth_std <= max_std. depth: (H, W) sensor z-depth metres (0 = none); depth_sigma:
-    its (H, W) sigma (m). Returns a new dict with the fused depth and depth_std (0 and inf
-    where neither has one) and opacity 1 where the fused depth exists, 0 elsewhere; colour
-    as rendered.
+    its (H, W) sigma (m). A render smaller than the sensor's image (the same camera at a
+    lower resolution, h <= H and w <= W) is first brought to (H, W) by :func:`nearest_upsample`:
+    the sensor keeps its resolution and the model fills its holes. Returns a new dict at
+    (H, W) with the fused depth and depth_std (0 and inf where neither has one) and opacity
+    1 where the fused depth exists, 0 elsewhere; colour as rendered.
     """
-    if depth.shape != render["depth"].shape:
-        raise InputError(f"sensor depth {depth.shape} and render {render['depth'].shape} differ in size")
+    (h, w), (H, W) = render["depth"].shape, depth.shape
+    if depth_sigma.shape != depth.shape or h > H or w > W:
+        raise InputError(f"sensor depth {depth.shape} and sigma {depth_sigma.shape} must match, and the render "
+                         f"{render['depth'].shape} must not be larger")
+    render = {k: nearest_upsample(v, (H, W)) if isinstance(v, np.ndarray) and v.shape[:2] == (h, w) else v
+              for k, v in render.items()}
     confident = (render["opacity"] >= min_opacity) & (render["depth_std"] <= max_std)
     mean, sigma = fuse_gaussians(np.where(confident, render["depth"], np.nan), render["depth_std"],
                                  np.where(depth > 0, depth, np.nan), depth_sigma)
     has = np.isfinite(mean)
     return {**render, "depth": np.where(has, mean, 0).astype(np.float32),
             "depth_std": np.where(has, sigma, np.inf).astype(np.float32), "opacity": has.astype(np.float32)}
+
+
+def nearest_upsample(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """`image` (h, w, ...) at `size` (H, W) >= (h, w) by nearest pixel centre: pixel (u, v) takes
+    the pixel of the small image whose centre is nearest to its own (pixel centres at integer
+    coordinates, as :func:`~open3d_pnerf.camera.scale_intrinsic` scales an intrinsic)."""
+    (h, w), (H, W) = image.shape[:2], size
+    rows = np.clip(np.round((np.arange(H) + 0.5) * h / H - 0.5), 0, h - 1).astype(int)
+    cols = np.clip(np.round((np.arange(W) + 0.5) * w / W - 0.5), 0, w - 1).astype(int)
+    return image[rows[:, None], cols[None, :]]

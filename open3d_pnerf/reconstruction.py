@@ -255,7 +255,8 @@ class Reconstruction:
         rebuild .mesh, .mesh_sigma, .point_cloud, .point_sigma.
 
         sequence: the input sequence (all frames, as given to reconstruct()); when it has depth
-        images, each view's rendered depth is fused per pixel with the sensor's depth by
+        images, each view's rendered depth is fused per pixel with the sensor's depth at the
+        training resolution (the render brought to it by nearest pixel) by
         :func:`~open3d_pnerf.fusion.fuse_render_with_sensor`, with the sensor's random sigma
         (:class:`~open3d_pnerf.targets.SensorNoise`); its systematic part (targets.
         depth_sigma_relative) is common to both, the model having learned from this sensor,
@@ -269,11 +270,13 @@ class Reconstruction:
         if sequence is not None:
             check_sequence(sequence, len(self.poses), "export_geometry(): sequence")
             if sequence.has_depth:
-                views = sequence.select(frames).scaled_by(self.config.image_scale * cfg.scale)
-        intr = views.intrinsic if views is not None else scale_intrinsic(self.intrinsic, cfg.scale)
+                views = sequence.select(frames).scaled_by(self.config.image_scale)
+        intr = scale_intrinsic(views.intrinsic if views is not None else self.intrinsic, cfg.scale)
         K = intrinsic_matrix(intr)
         renders = [self.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
-        if views is not None:
+        max_std = cfg.max_point_std  # applies to the model's depth, before any fusion
+        if views is not None:  # fused at the training resolution: the sensor's own
+            K, max_std = views.K, np.inf
             noise = self.config.targets.sensor_noise()
             for k, r in enumerate(renders):
                 z = self._in_box(views[k].depth, K, poses[k])
@@ -284,9 +287,9 @@ class Reconstruction:
                 fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
                 renders[k] = fused
         self.point_cloud, self.point_sigma = point_cloud_from_renders(
-            renders, poses, K, cfg.min_opacity, cfg.max_point_std, voxel_size=cfg.mesh_voxel_size / 2
+            renders, poses, K, cfg.min_opacity, max_std, voxel_size=cfg.mesh_voxel_size / 2
         )
-        self.mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, cfg.max_point_std)
+        self.mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, max_std)
         self.mesh_sigma = vertex_sigma(self.mesh, np.asarray(self.point_cloud.points), self.point_sigma)
 
     def write_nerfstudio(self, path, sequence: RGBDSequence, progress: bool = False) -> Path:
