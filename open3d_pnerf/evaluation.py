@@ -51,19 +51,56 @@ def depth_errors(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = No
     }
 
 
-def depth_calibration(pred: np.ndarray, std: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> dict:
+GAUSSIAN_SHARES = {1: 0.6826894921370859, 2: 0.9544997361036416, 3: 0.9973002039367398}
+"""Share of a Gaussian within k sigma of its mean, k = 1, 2, 3."""
+
+
+def _error_law(dof: float):
+    """The standard error law (scipy): Student-t with `dof` degrees of freedom, or a Gaussian (inf),
+    and the half-width of its central 68.27% interval (the 1-sigma equivalent)."""
+    from scipy import stats
+
+    law = stats.norm() if np.isinf(dof) else stats.t(dof)
+    return law, float(law.ppf((1 + GAUSSIAN_SHARES[1]) / 2))
+
+
+def sigma_multiple(probability: float, dof: float = np.inf) -> float:
+    """Half-width, in 1-sigma equivalents, of the central interval that holds `probability` of
+    the depth-error law: a Student-t with `dof` degrees of freedom (inf: a Gaussian) scaled so
+    that 1 sigma-equivalent is the half-width of its central 68.27%. A Gaussian gives 1, 2, 3
+    for 0.683, 0.954, 0.997; heavier tails (smaller dof) give more."""
+    if not 0 < probability < 1:
+        raise InputError(f"probability must be in (0, 1), got {probability!r}")
+    law, one = _error_law(dof)
+    return float(law.ppf((1 + probability) / 2) / one)
+
+
+def depth_nll(err: np.ndarray, sigma: np.ndarray, dof: float = np.inf) -> np.ndarray:
+    """Negative log-likelihood (nats) of depth errors `err` (m) under the law of
+    1-sigma-equivalent `sigma` (m) and `dof` degrees of freedom (:func:`sigma_multiple`);
+    arrays of one shape, or broadcastable."""
+    law, one = _error_law(dof)
+    scale = np.asarray(sigma) / one
+    return np.log(scale) - law.logpdf(np.asarray(err) / scale)
+
+
+def depth_calibration(pred: np.ndarray, std: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None,
+                      dof: float = np.inf) -> dict:
     """How well predicted depth sigmas explain the errors on valid pixels.
 
-    within_k: fraction of |pred - gt| <= k * std for k = 1, 2, 3 (a calibrated Gaussian
-    gives 0.683, 0.954, 0.997); nll: mean Gaussian negative log-likelihood (nats).
+    std: 1-sigma-equivalent errors (m) of the law with `dof` degrees of freedom (inf: a
+    Gaussian; see :func:`sigma_multiple`). within_k: fraction of |pred - gt| inside the law's
+    central interval that a Gaussian's k sigma would be (0.683, 0.954, 0.997 of it) for k =
+    1, 2, 3: a calibrated law gives those shares; nll: its mean negative log-likelihood (nats).
     """
     mask = (gt > 0) if valid is None else valid & (gt > 0)
     err = np.abs(pred[mask] - gt[mask])
     s = np.maximum(std[mask], 1e-6)
     if err.size == 0:
         return {"within_1": float("nan"), "within_2": float("nan"), "within_3": float("nan"), "nll": float("nan")}
-    out = {f"within_{k}": float((err <= k * s).mean()) for k in (1, 2, 3)}
-    out["nll"] = float(np.mean(0.5 * (err / s) ** 2 + np.log(s) + 0.5 * np.log(2 * np.pi)))
+    multiple = {k: k if np.isinf(dof) else sigma_multiple(GAUSSIAN_SHARES[k], dof) for k in (1, 2, 3)}
+    out = {f"within_{k}": float((err <= multiple[k] * s).mean()) for k in (1, 2, 3)}
+    out["nll"] = float(np.mean(depth_nll(err, s, dof)))
     return out
 
 
@@ -118,7 +155,8 @@ def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = Non
 
     Renders at the training resolution (or `scale` of the sequence). Each item is a dict:
     index (frame), color (H, W, 3) in [0, 1] on the depth grid, depth (H, W) sensor z-depth
-    m, model (Reconstruction.render output at the frame's own exposure), tsdf
+    m, model (Reconstruction.render output at the frame's own exposure), depth_dof (the
+    degrees of freedom of its depth-error law, Reconstruction.depth_sigma_dof), tsdf
     (TSDFVolume.render output or None).
     """
     scale = scale or recon.config.image_scale
@@ -129,7 +167,7 @@ def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = Non
         frame = seq[k]
         yield {
             "index": int(i), "color": seq.color_on_depth_grid(frame.color) / 255.0, "depth": frame.depth,
-            "model": recon.render(recon.poses[i], seq.intrinsic, frame=int(i)),
+            "model": recon.render(recon.poses[i], seq.intrinsic, frame=int(i)), "depth_dof": recon.depth_sigma_dof,
             "tsdf": None if tsdf is None else tsdf.render(recon.poses[i], K, w, h),
         }
 
@@ -147,7 +185,7 @@ def score_renders(renders) -> dict:
         row = {"psnr": psnr(out["color"], color), "ssim": ssim(out["color"], color)}
         if with_depth:
             row.update({f"depth_{m}": v for m, v in depth_errors(out["depth"], depth).items()})
-            row.update(depth_calibration(out["depth"], out["depth_std"], depth))
+            row.update(depth_calibration(out["depth"], out["depth_std"], depth, dof=r.get("depth_dof", np.inf)))
         rows["model"].append(row)
         if t is not None:
             rows["tsdf"].append({

@@ -26,6 +26,7 @@ from .data.nerfstudio import write_nerfstudio
 from .data.sequence import RGBDSequence, check_sequence
 from .data.trajectories import write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
 from .errors import CheckpointError, ConfigError, InputError
+from .evaluation import depth_nll, sigma_multiple
 from .export import (
     mesh_from_renders,
     point_cloud_from_renders,
@@ -55,8 +56,9 @@ class Reconstruction:
     poses (N, 4, 4) camera-to-world and covariances (N, 6, 6) cover every frame of the
     input sequence; train_indices / holdout_indices say which trained. intrinsic is the
     training-resolution ``o3d.camera.PinholeCameraIntrinsic``. depth_sigma_scale and
-    depth_sigma_floor turn the model's depth spread into a calibrated 1-sigma error (see
-    calibrate_depth_sigma). mesh_sigma (V,) and point_sigma (M,): the exported mesh's
+    depth_sigma_floor turn the model's depth spread into a calibrated 1-sigma-equivalent error,
+    and depth_sigma_dof (inf: a Gaussian) says how heavy the tails of its law are (see
+    calibrate_depth_sigma, depth_interval). mesh_sigma (V,) and point_sigma (M,): the exported mesh's
     per-vertex and point cloud's per-point depth sigma (m).
     color_gains (N, 3): each frame's camera exposure as per-channel gains on the rendered
     colour (learned for training frames, interpolated in time for the others; ones without
@@ -66,7 +68,7 @@ class Reconstruction:
     def __init__(self, model, config: ReconstructionConfig, poses, covariances, intrinsic, aabb,
                  train_indices, holdout_indices, timestamps=None, mesh=None, point_cloud=None,
                  point_sigma=None, stats=None, depth_sigma_scale: float = 1.0, color_gains=None, mesh_sigma=None,
-                 depth_sigma_floor: float = 0.0):
+                 depth_sigma_floor: float = 0.0, depth_sigma_dof: float = np.inf):
         if not isinstance(model, PNeRFModel):  # a bare field renders with the config's sampling
             model = PNeRFModel(model, config.sampling, config.loss)
         self.model = model
@@ -85,6 +87,7 @@ class Reconstruction:
         self.stats = stats or {}
         self.depth_sigma_scale = float(depth_sigma_scale)
         self.depth_sigma_floor = float(depth_sigma_floor)
+        self.depth_sigma_dof = float(depth_sigma_dof)
         self.color_gains = np.ones((len(self.poses), 3)) if color_gains is None else np.asarray(color_gains, np.float64)
 
     @property
@@ -112,7 +115,8 @@ class Reconstruction:
             ("mesh", f"{len(self.mesh.triangles)} triangles" if self.mesh is not None else "none"),
             ("point cloud", f"{len(self.point_cloud.points)} points with depth sigma" if self.point_cloud is not None
              else "none"),
-            ("depth sigma", f"{self.depth_sigma_scale:.3g} x spread, floor {100 * self.depth_sigma_floor:.2g}% of depth"),
+            ("depth sigma", f"{self.depth_sigma_scale:.3g} x spread, floor {100 * self.depth_sigma_floor:.2g}% of depth, "
+                            + ("Gaussian" if np.isinf(self.depth_sigma_dof) else f"Student-t {self.depth_sigma_dof:.3g} dof")),
         ]
         return "\n".join(["| Reconstruction | |", "| --- | --- |"] + [f"| {k} | {v} |" for k, v in rows]) + "\n"
 
@@ -177,9 +181,17 @@ class Reconstruction:
                 "pdf": pdf.cpu().numpy(), "opacity": out["opacity"].cpu().numpy()}
 
     def calibrated_sigma(self, spread: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        """The 1-sigma depth error (m) of a raw depth spread (m) at z-depth `depth` (m):
+        """The 1-sigma-equivalent depth error (m: the half-width of the central 68.3% interval of
+        the error law) of a raw depth spread (m) at z-depth `depth` (m):
         sqrt((depth_sigma_scale * spread)^2 + (depth_sigma_floor * depth)^2)."""
         return np.sqrt((self.depth_sigma_scale * spread) ** 2 + (self.depth_sigma_floor * depth) ** 2)
+
+    def depth_interval(self, probability: float) -> float:
+        """Multiple of the rendered depth_std whose +- interval holds `probability` of the depth
+        errors under the calibrated law (Student-t with depth_sigma_dof degrees of freedom; a
+        Gaussian gives 1, 2, 3 for 0.683, 0.954, 0.997). E.g. a 95% error bar is
+        depth_std * depth_interval(0.95)."""
+        return sigma_multiple(probability, self.depth_sigma_dof)
 
     def calibrate_depth_sigma(self, sequence: RGBDSequence, coverage: float = 0.683, frames: int = 8,
                               pixels: int = 1024, method: str = "likelihood") -> float:
@@ -188,17 +200,23 @@ class Reconstruction:
         The raw spread of the weights along a ray is set as much by sample spacing and grid
         blur as by the data, so it is not an error bar by itself. method "likelihood" (default)
         fits depth_sigma_scale s and depth_sigma_floor f of sigma = sqrt((s spread)^2 + (f z)^2)
-        by maximum Gaussian likelihood of the depth errors: a predictive distribution right
-        across its range, not at one quantile (the relative floor covers errors the spread
-        does not see, e.g. a surface between the samples). method "quantile": f = 0 and s such
-        that `coverage` of the errors lie within 1 sigma (exact at that one quantile only).
+        and the degrees of freedom depth_sigma_dof of a Student-t law of the depth errors, by
+        maximum likelihood: a predictive distribution right across its range, not at one
+        quantile. Depth errors are heavy-tailed (most pixels within millimetres, a few on the
+        wrong side of an edge), which a Gaussian can only meet by widening every sigma; the
+        relative floor covers errors the spread does not see (e.g. a surface between the
+        samples). method "gaussian": the same fit with a Gaussian law (dof inf). method
+        "quantile": a Gaussian, f = 0 and s such that `coverage` of the errors lie within 1
+        sigma (exact at that one quantile only). sigma is the 1-sigma equivalent (the half-width
+        of the law's central 68.3%); :meth:`depth_interval` gives the other intervals.
         sequence: the input sequence (all frames, as given to reconstruct()); up to `frames`
         training frames are read at the training resolution and `pixels` random pixels of each
         with sensor depth and opacity > 0.5 are rendered (held-out frames are never used).
-        Sets depth_sigma_scale and depth_sigma_floor; returns the scale (1.0, floor 0 if no pixel).
+        Sets depth_sigma_scale, depth_sigma_floor and depth_sigma_dof; returns the scale (1.0,
+        floor 0, Gaussian if no pixel).
         """
-        if method not in ("likelihood", "quantile"):
-            raise InputError(f"method must be 'likelihood' or 'quantile', got {method!r}")
+        if method not in ("likelihood", "gaussian", "quantile"):
+            raise InputError(f"method must be 'likelihood', 'gaussian' or 'quantile', got {method!r}")
         check_sequence(sequence, len(self.poses), "calibrate_depth_sigma(): sequence", needs_depth=True)
         train = self.train_indices[evenly_spaced(len(self.train_indices), frames)]
         seq = sequence.select(train)
@@ -217,12 +235,12 @@ class Reconstruction:
             spreads.append(np.maximum(out["depth_std"][ok], 1e-6))
             depths.append(depth[pix][ok])
         err, spread, z = (np.concatenate(a) if a else np.zeros(0) for a in (errors, spreads, depths))
-        self.depth_sigma_scale, self.depth_sigma_floor = 1.0, 0.0
+        self.depth_sigma_scale, self.depth_sigma_floor, self.depth_sigma_dof = 1.0, 0.0, np.inf
         if err.size:
             self.depth_sigma_scale = float(np.quantile(err / spread, coverage))
-            if method == "likelihood":
-                self.depth_sigma_scale, self.depth_sigma_floor = _likelihood_fit(err, spread, z,
-                                                                                 self.depth_sigma_scale)
+            if method != "quantile":
+                self.depth_sigma_scale, self.depth_sigma_floor, self.depth_sigma_dof = _likelihood_fit(
+                    err, spread, z, self.depth_sigma_scale, fit_dof=method == "likelihood")
         return self.depth_sigma_scale
 
     def _in_box(self, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -328,6 +346,7 @@ class Reconstruction:
             "stats": self.stats,
             "depth_sigma_scale": self.depth_sigma_scale,
             "depth_sigma_floor": self.depth_sigma_floor,
+            "depth_sigma_dof": None if np.isinf(self.depth_sigma_dof) else self.depth_sigma_dof,  # null: Gaussian
         }
         weights = {k: v.cpu() for k, v in self.field.state_dict().items()}
         writes = {
@@ -396,7 +415,16 @@ class Reconstruction:
         return cls(model, config, _load_array(d / "poses.npy", (n, 4, 4)), _load_array(d / "covariances.npy", (n, 6, 6)),
                    intr, aabb, *indices, timestamps, mesh, cloud, sigma, meta.get("stats"),
                    float(meta.get("depth_sigma_scale", 1.0)), gains, mesh_sigma,
-                   float(meta.get("depth_sigma_floor", 0.0)))
+                   float(meta.get("depth_sigma_floor", 0.0)), _dof(meta.get("depth_sigma_dof"), d / "reconstruction.json"))
+
+
+def _dof(value, meta_path: Path) -> float:
+    """depth_sigma_dof as saved: a number > 0, or null (or absent: older saves) for a Gaussian."""
+    if value is None:
+        return np.inf
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise CheckpointError(f"{meta_path}: depth_sigma_dof must be a number > 0 or null, got {value!r}")
+    return float(value)
 
 
 def _read_meta(path: Path) -> dict:
@@ -444,17 +472,24 @@ def _depth_range(value, meta_path) -> np.ndarray | None:
     return rng
 
 
-def _likelihood_fit(err: np.ndarray, spread: np.ndarray, z: np.ndarray, scale0: float) -> tuple[float, float]:
-    """(s, f) >= 0 minimising the mean Gaussian negative log-likelihood of errors `err` under
-    sigma = sqrt((s spread)^2 + (f z)^2); all (M,) metres; starts from s = scale0, f = 0.1%."""
+def _likelihood_fit(err: np.ndarray, spread: np.ndarray, z: np.ndarray, scale0: float,
+                    fit_dof: bool = True) -> tuple[float, float, float]:
+    """(s, f, dof) minimising the mean negative log-likelihood of errors `err` under the law of
+    1-sigma-equivalent sigma = sqrt((s spread)^2 + (f z)^2) (:func:`~open3d_pnerf.evaluation.depth_nll`):
+    a Student-t with dof in [1, 1000] degrees of freedom, or a Gaussian (dof inf) unless
+    `fit_dof`; all (M,) metres; starts from s = scale0, f = 0.1%, dof 4."""
     from scipy.optimize import minimize
 
-    def nll(log_params):
-        s, f = np.exp(log_params)
-        var = (s * spread) ** 2 + (f * z) ** 2 + 1e-12
-        return float(np.mean(0.5 * err**2 / var + 0.5 * np.log(var)))
+    def unpack(x):
+        dof = float(np.clip(np.exp(x[2]), 1.0, 1000.0)) if fit_dof else np.inf
+        return np.exp(x[0]), np.exp(x[1]), dof
 
-    start = np.log([max(scale0, 1e-6), 1e-3])
-    best = minimize(nll, start, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-9, "maxiter": 2000})
-    s, f = np.exp(best.x if best.fun <= nll(start) else start)
-    return float(s), float(f)
+    def nll(x):
+        s, f, dof = unpack(x)
+        sigma = np.sqrt((s * spread) ** 2 + (f * z) ** 2) + 1e-9
+        return float(np.mean(depth_nll(err, sigma, dof)))
+
+    start = np.log([max(scale0, 1e-6), 1e-3, 4.0][: 3 if fit_dof else 2])
+    best = minimize(nll, start, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-9, "maxiter": 3000})
+    s, f, dof = unpack(best.x if best.fun <= nll(start) else start)
+    return float(s), float(f), dof

@@ -389,6 +389,8 @@ CASES = [
          ("reconstruction.json", "missing ['intrinsic']")),
     Case("saved-json-malformed-box", edit(saved, edit_meta(aabb=[1, 2])), Reconstruction.load, CheckpointError,
          ("reconstruction.json", "malformed")),
+    Case("saved-json-bad-depth-dof", edit(saved, edit_meta(depth_sigma_dof=-1.0)), Reconstruction.load,
+         CheckpointError, ("reconstruction.json", "depth_sigma_dof must be a number > 0 or null", "-1.0")),
     Case("saved-json-bad-depth-range", edit(saved, edit_meta(depth_range=[2.0, 1.0])), Reconstruction.load,
          CheckpointError, ("reconstruction.json", "depth_range [2.0, 1.0]", "0 < near < far")),
     Case("saved-json-indices-out-of-range", edit(saved, edit_meta(train_indices=[1, 7])), Reconstruction.load,

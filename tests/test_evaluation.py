@@ -22,10 +22,12 @@ from open3d_pnerf.errors import ConfigError, InputError
 from open3d_pnerf.evaluation import (
     depth_calibration,
     depth_errors,
+    depth_nll,
     geometry_metrics,
     heldout_renders,
     psnr,
     score_renders,
+    sigma_multiple,
     ssim,
 )
 from open3d_pnerf.pipeline import split_frames
@@ -105,6 +107,35 @@ def test_depth_calibration_counts_errors_within_k_sigma_and_the_nll():
     assert out["nll"] == pytest.approx(np.mean(np.log(sigma)) + 0.5 + HALF_LOG_2PI, abs=0.01)
     nan = depth_calibration(gt, sigma, np.zeros_like(gt))
     assert all(math.isnan(v) for v in nan.values())
+
+
+def test_sigma_multiple_is_1_2_3_for_a_gaussian_and_the_cauchy_quantiles_for_one_dof():
+    assert [sigma_multiple(p) for p in (0.6827, 0.9545, 0.9973)] == pytest.approx([1, 2, 3], abs=2e-3)
+    # Student-t with 1 dof is Cauchy: the central p interval is +-tan(pi p / 2) scales
+    one = math.tan(math.pi * 0.6826894921370859 / 2)
+    assert sigma_multiple(0.95, dof=1.0) == pytest.approx(math.tan(math.pi * 0.95 / 2) / one, rel=1e-6)
+    assert sigma_multiple(0.6826894921370859, dof=3.0) == pytest.approx(1.0)
+    with pytest.raises(InputError, match="probability"):
+        sigma_multiple(1.0)
+
+
+def test_depth_calibration_under_a_student_t_law_counts_its_own_intervals_and_nll():
+    """Errors drawn from a Student-t (3 dof) whose central 68.27% is +-sigma: within_1/2/3 are the
+    textbook Gaussian shares when scored with dof 3, and too few beyond 1 sigma with a Gaussian."""
+    rng = np.random.default_rng(1)
+    sigma = rng.uniform(0.01, 0.1, 200_000)
+    one = 1.19688  # Student-t (3 dof) 84.13% quantile: the half-width of its central 68.27%
+    gt = rng.uniform(1, 3, sigma.shape)
+    pred = gt + rng.standard_t(3, sigma.shape) * sigma / one
+    out = depth_calibration(pred, sigma, gt, dof=3.0)
+    for k, expected in ((1, 0.6827), (2, 0.9545), (3, 0.9973)):
+        assert out[f"within_{k}"] == pytest.approx(expected, abs=0.004)
+    gaussian = depth_calibration(pred, sigma, gt)
+    assert gaussian["within_1"] == pytest.approx(0.6827, abs=0.004) and gaussian["within_3"] < 0.98
+    assert out["nll"] < gaussian["nll"]  # the law the errors came from explains them better
+    # one error at 0 with sigma 1 under 1 dof (Cauchy, scale 1 / tan(0.3413 pi)): nll = log(pi scale)
+    scale = 1 / math.tan(math.pi * 0.6826894921370859 / 2)
+    assert depth_nll(np.zeros(1), np.ones(1), dof=1.0)[0] == pytest.approx(math.log(math.pi * scale))
 
 
 # -- geometry metrics --------------------------------------------------------------------------------

@@ -501,26 +501,38 @@ def test_depth_std_is_the_scaled_model_spread_with_a_relative_floor(recon):
     np.testing.assert_array_equal(scaled["depth"], raw["depth"])
 
 
-def test_likelihood_fit_recovers_the_scale_and_floor_of_known_errors():
-    """Errors drawn from N(0, (s spread)^2 + (f z)^2) with s = 2.5, f = 1%: the fit finds both."""
+def test_likelihood_fit_recovers_the_scale_floor_and_tails_of_known_errors():
+    """1-sigma-equivalent sigma = hypot(s spread, f z) with s = 2.5, f = 1%: a Gaussian fit finds
+    s and f from Gaussian errors (dof inf); the Student-t fit finds them and 3 dof from Student-t
+    errors, and a large dof from Gaussian ones."""
+    from scipy import stats
+
     from open3d_pnerf.reconstruction import _likelihood_fit
 
     rng = np.random.default_rng(0)
     spread = rng.uniform(0.001, 0.05, 20000)
     z = rng.uniform(0.5, 4.0, 20000)
-    err = np.abs(rng.normal(0, np.hypot(2.5 * spread, 0.01 * z)))
-    s, f = _likelihood_fit(err, spread, z, scale0=1.0)
-    assert s == pytest.approx(2.5, rel=0.03) and f == pytest.approx(0.01, rel=0.05)
+    sigma = np.hypot(2.5 * spread, 0.01 * z)
+    err = np.abs(rng.normal(0, sigma))
+    s, f, dof = _likelihood_fit(err, spread, z, scale0=1.0, fit_dof=False)
+    assert s == pytest.approx(2.5, rel=0.03) and f == pytest.approx(0.01, rel=0.05) and dof == np.inf
+    assert _likelihood_fit(err, spread, z, scale0=1.0)[2] > 30
+    heavy = np.abs(rng.standard_t(3, spread.shape)) * sigma / stats.t(3).ppf(0.8413447460685429)
+    s, f, dof = _likelihood_fit(heavy, spread, z, scale0=1.0)
+    assert s == pytest.approx(2.5, rel=0.05) and f == pytest.approx(0.01, rel=0.1) and dof == pytest.approx(3, rel=0.15)
 
 
 @pytest.mark.slow
 def test_calibration_fits_on_training_frames_and_quantile_puts_68_percent_within_one_sigma(recon, sample):
-    scale, floor = recon.depth_sigma_scale, recon.depth_sigma_floor
+    scale, floor, dof = recon.depth_sigma_scale, recon.depth_sigma_floor, recon.depth_sigma_dof
     try:
         with pytest.raises(InputError, match="method must be"):
             recon.calibrate_depth_sigma(sample, method="bogus")
-        recon.calibrate_depth_sigma(sample)  # the default: maximum likelihood, scale and floor
+        recon.calibrate_depth_sigma(sample)  # the default: maximum likelihood, Student-t
         assert 0 < recon.depth_sigma_scale < 10 and 0 <= recon.depth_sigma_floor < 0.2
+        assert 1 <= recon.depth_sigma_dof <= 1000 and recon.depth_interval(0.954) > 2
+        recon.calibrate_depth_sigma(sample, method="gaussian")
+        assert recon.depth_sigma_dof == np.inf and recon.depth_interval(0.954) == pytest.approx(2, abs=1e-3)
         fitted = recon.calibrate_depth_sigma(sample, method="quantile")
         assert fitted == recon.depth_sigma_scale and 0 < fitted < 10 and recon.depth_sigma_floor == 0
         train = sample.select(recon.train_indices).at_scale(recon.config.image_scale)
@@ -531,7 +543,7 @@ def test_calibration_fits_on_training_frames_and_quantile_puts_68_percent_within
             inside.append(np.abs(out["depth"] - depth)[ok] <= out["depth_std"][ok])
         assert abs(np.concatenate(inside).mean() - 0.683) < 0.05
     finally:
-        recon.depth_sigma_scale, recon.depth_sigma_floor = scale, floor
+        recon.depth_sigma_scale, recon.depth_sigma_floor, recon.depth_sigma_dof = scale, floor, dof
 
 
 @pytest.mark.slow
@@ -540,6 +552,7 @@ def test_saved_reconstruction_keeps_its_calibration(recon, saved):
     loaded = Reconstruction.load(saved)
     assert loaded.depth_sigma_scale == pytest.approx(recon.depth_sigma_scale)
     assert loaded.depth_sigma_floor == pytest.approx(recon.depth_sigma_floor)
+    assert loaded.depth_sigma_dof == pytest.approx(recon.depth_sigma_dof)
 
 
 @pytest.mark.slow
