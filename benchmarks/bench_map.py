@@ -3,14 +3,17 @@ whether the depth sigma holds as an error bar.
 
 Per dataset and loss (pnerf, dsnerf, photometric: the same configuration, the `fast` preset,
 ground-truth poses, every 4th frame held out, 320x240), one run:
-  * the exported mesh, fused with the sensor depth (what reconstruct() writes), and the
-    model-only mesh (the same export without the sensor), against the TSDF mesh Open3D fuses
+  * the exported mesh, fused with the sensor depth (what reconstruct() writes; with pnerf also
+    with the model's depth kept in the sensor's holes only where its sigma is at most
+    --fill-std), and the model-only mesh (the same export without the sensor), against the
+    TSDF mesh Open3D fuses
     from the same training frames and poses: accuracy, completeness, F@20/50 mm against the
     exact surface (synthetic room); on every held-out frame, each mesh ray-cast at the
     held-out pose: depth L1 on its hits and the share of the sensor's pixels it covers;
-  * the field's own held-out renders: depth L1 over every pixel with sensor depth, and
-    coverage within 1/2/3 sigma with the Gaussian negative log-likelihood of the errors
-    (the sigma is calibrated on training frames only);
+  * the field's own held-out renders: depth L1 over every pixel with sensor depth, and the
+    shares of errors within the central 68.3/95.4/99.7% intervals of the calibrated error law
+    with its negative log-likelihood, for the default Student-t law and a Gaussian one (both
+    fitted on training frames only);
   * export time against training time.
 Datasets: synthetic (the room of bench_suite.py: 10 training views, and all 36 with pnerf only), tum (TUM
 fr1/xyz, all 24 training frames), 7scenes (redkitchen 150-199, all 38 training frames).
@@ -60,7 +63,7 @@ def run_one(spec: dict) -> dict:
     torch.set_num_threads(spec["threads"])
     import open3d_pnerf as pn
     from open3d_pnerf.comparison import compare_with_tsdf
-    from open3d_pnerf.evaluation import geometry_metrics
+    from open3d_pnerf.evaluation import geometry_metrics, heldout_scores
 
     seq, reference = load(spec["source"], Path(spec["cache"]))
     poses, covs = poses_for(spec["source"], seq, "gt", Path(spec["cache"]))
@@ -69,6 +72,12 @@ def run_one(spec: dict) -> dict:
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
     meshes = {"fused": recon.mesh, "tsdf": comparison.tsdf.mesh()}
+    default_std = recon.config.export.max_point_std
+    for std in spec["fill_std"] if spec["loss"] == "pnerf" else ():  # model depth kept where the sensor has none
+        recon.config.export.max_point_std = std
+        recon.export_geometry(progress=False, sequence=seq)
+        meshes[f"fused, fill sigma <= {1000 * std:g} mm"] = recon.mesh
+    recon.config.export.max_point_std = default_std
     t0 = time.perf_counter()
     recon.export_geometry(progress=False)  # the same export without the sensor
     model_only_export_s = time.perf_counter() - t0
@@ -88,7 +97,13 @@ def run_one(spec: dict) -> dict:
             g = geometry_metrics(mesh, reference)
             entry.update({k: g[k] for k in ("accuracy", "completeness", "fscore_20mm", "fscore_50mm")})
         out["meshes"][name] = {k: round(v, 5) for k, v in entry.items()}
-    out["calibration"] = {"scale": recon.depth_sigma_scale, "floor": recon.depth_sigma_floor}
+    out["calibration"] = {"scale": recon.depth_sigma_scale, "floor": recon.depth_sigma_floor,
+                          "dof": None if np.isinf(recon.depth_sigma_dof) else recon.depth_sigma_dof}
+    # the same model with a Gaussian error law (fitted the same way, on the same training pixels)
+    recon.calibrate_depth_sigma(seq, method="gaussian")
+    gaussian = heldout_scores(recon, seq)["model"]
+    out["field_gaussian"] = {k: gaussian[k] for k in ("within_1", "within_2", "within_3", "nll")}
+    out["calibration_gaussian"] = {"scale": recon.depth_sigma_scale, "floor": recon.depth_sigma_floor}
     out["train_s"] = recon.stats["training"]["seconds"]
     out["export_s"] = recon.stats["timings"]["export_s"]
     out["model_only_export_s"] = round(model_only_export_s, 2)
@@ -108,19 +123,25 @@ def markdown(results: list[dict], meta: dict) -> str:
         for name, m in r["meshes"].items():
             if name == "tsdf" and r["loss"] != "pnerf":
                 continue  # the same TSDF in every loss's run
-            label = "Open3D TSDF" if name == "tsdf" else f"{name.replace('_', '-')}"
+            label = "Open3D TSDF" if name == "tsdf" else name.replace("_", "-")
             lines.append(f"| {r['dataset']} | {r['views']} | {r['loss'] if name != 'tsdf' else '-'} | {label} | "
                          f"{mm(m, 'accuracy')} | {mm(m, 'completeness')} | {f3(m, 'fscore_20mm')} | "
                          f"{f3(m, 'fscore_50mm')} | {mm(m, 'depth_l1')} | {m['coverage']:.3f} |")
-    lines += ["", "The field's own held-out renders, and its depth sigma as an error bar (a calibrated Gaussian: "
-              "0.683 / 0.954 / 0.997 within 1/2/3 sigma); TSDF depth L1 on its hits:", "",
-              "| dataset | views | loss | PSNR (dB) | depth L1 (mm) | TSDF depth L1 on hits (mm) | within 1σ | 2σ | 3σ | "
-              "NLL | sigma = sqrt((s spread)^2 + (f z)^2) | train s | export s (fused) |", "|" + " --- |" * 13]
+    lines += ["", "The field's own held-out renders, and its depth sigma as an error bar: the share of held-out "
+              "errors within the central 68.3 / 95.4 / 99.7% intervals of the calibrated law (what 1/2/3 sigma hold "
+              "for a Gaussian; a calibrated law gives those shares) and its negative log-likelihood (nats), for the "
+              "default Student-t law and a Gaussian one fitted the same way on the same training pixels; TSDF depth "
+              "L1 on its hits:", "",
+              "| dataset | views | loss | PSNR (dB) | depth L1 (mm) | TSDF depth L1 on hits (mm) | Student-t: 68.3% | "
+              "95.4% | 99.7% | NLL | Gaussian: 68.3% | 95.4% | 99.7% | NLL | sigma = sqrt((s spread)^2 + (f z)^2), "
+              "dof | train s | export s (fused) |", "|" + " --- |" * 18]
     for r in results:
-        f, t, c = r["field"], r["tsdf_field_like"], r["calibration"]
+        f, g, t, c = r["field"], r["field_gaussian"], r["tsdf_field_like"], r["calibration"]
+        dof = "Gaussian" if c["dof"] is None else f"{c['dof']:.3g} dof"
         lines.append(f"| {r['dataset']} | {r['views']} | {r['loss']} | {f['psnr']:.2f} | {1000 * f['depth_l1']:.1f} | "
                      f"{1000 * t['depth_l1']:.1f} | {f['within_1']:.3f} | {f['within_2']:.3f} | {f['within_3']:.3f} | "
-                     f"{f['nll']:.2f} | s {c['scale']:.3g}, f {100 * c['floor']:.2g}% | {r['train_s']:.0f} | "
+                     f"{f['nll']:.2f} | {g['within_1']:.3f} | {g['within_2']:.3f} | {g['within_3']:.3f} | "
+                     f"{g['nll']:.2f} | s {c['scale']:.3g}, f {100 * c['floor']:.2g}%, {dof} | {r['train_s']:.0f} | "
                      f"{r['export_s']:.1f} ({100 * r['export_s'] / r['train_s']:.0f}%) |")
     return "\n".join(lines) + "\n"
 
@@ -133,6 +154,8 @@ def main():
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
     ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
     ap.add_argument("--preset", default="fast", help="'test': a smoke test of the script")
+    ap.add_argument("--fill-std", default="0.02,0.05",
+                    help="pnerf only: also export with the model's depth kept where its sigma is at most these (m)")
     ap.add_argument("--name", default="map")
     args = ap.parse_args()
     datasets, losses = args.datasets.split(","), args.losses.split(",")
@@ -144,13 +167,14 @@ def main():
     t0 = time.perf_counter()
     synthetic = prepare_synthetic(cache, False) if any(d.startswith("synthetic") for d in datasets) else None
     specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else d, loss=loss, seed=args.seed,
-                  threads=args.threads, preset=args.preset, cache=str(cache))
+                  threads=args.threads, preset=args.preset, cache=str(cache),
+                  fill_std=[float(v) for v in args.fill_std.split(",") if v])
              for d in datasets for loss in losses if d not in MESH_ONLY or loss == "pnerf"]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
         f"{r['dataset']:14s} {r['loss']:12s} fused {r['meshes']['fused']} tsdf {r['meshes']['tsdf']} "
         f"field {r['field']}"))
     meta = {"machine": machine(),
-            "seed": args.seed, "threads": args.threads, "jobs": args.jobs, "preset": args.preset,
+            "seed": args.seed, "threads": args.threads, "jobs": args.jobs, "preset": args.preset, "fill_std": args.fill_std,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS}
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(results, meta))
