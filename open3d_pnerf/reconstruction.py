@@ -269,8 +269,9 @@ class Reconstruction:
         return pose, intrinsic
 
     def export_geometry(self, progress: bool = True, sequence: RGBDSequence | None = None) -> None:
-        """Render training views (at most export.max_views, evenly spaced) at export.scale and
-        rebuild .mesh, .mesh_sigma, .point_cloud, .point_sigma.
+        """Render training views (at most export.max_views, evenly spaced) at export.scale (at
+        export.fused_scale when fused with sensor depth) and rebuild .mesh, .mesh_sigma,
+        .point_cloud, .point_sigma.
 
         sequence: the input sequence (all frames, as given to reconstruct()); when it has depth
         images, each view's rendered depth is fused per pixel with the sensor's depth at the
@@ -289,7 +290,8 @@ class Reconstruction:
             check_sequence(sequence, len(self.poses), "export_geometry(): sequence")
             if sequence.has_depth:
                 views = sequence.select(frames).scaled_by(self.config.image_scale)
-        intr = scale_intrinsic(views.intrinsic if views is not None else self.intrinsic, cfg.scale)
+        intr = scale_intrinsic(self.intrinsic, cfg.scale) if views is None else \
+            scale_intrinsic(views.intrinsic, cfg.fused_scale)
         K = intrinsic_matrix(intr)
         renders = [self.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
         max_std = cfg.max_point_std  # applies to the model's depth, before any fusion
