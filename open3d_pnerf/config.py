@@ -221,6 +221,10 @@ class ExportConfig:
     """Render at most this many training views (evenly spaced): bounds export time and memory."""
     mesh_voxel_size: float = 0.01
     """Voxel size (m) of the TSDF that fuses rendered depth into the exported mesh."""
+    mesh_min_views: int = 1
+    """Keep mesh surfaces seen in at least this many export views: 1 keeps all (the most
+    complete mesh); 2 drops surfaces seen once, where the sensor's noise is not averaged (more
+    accurate, with holes where only one view looked)."""
     max_point_std: float = 0.1
     """Exported points whose rendered depth std exceeds this (m) are dropped."""
     min_opacity: float = 0.9
@@ -232,6 +236,7 @@ class ExportConfig:
                 ("fused_scale", lambda v: _number(v) and 0 < v <= 1, "a number in (0, 1]"),
                 ("max_views", _count, "an int >= 1"),
                 ("mesh_voxel_size", lambda v: _number(v) and v > 0, "a number > 0 (metres)"),
+                ("mesh_min_views", _count, "an int >= 1"),
                 ("max_point_std", lambda v: _number(v) and v > 0, "a number > 0 (metres)"),
                 ("min_opacity", lambda v: _number(v) and 0 <= v <= 1, "a number in [0, 1]")]
 

@@ -21,16 +21,19 @@ from .camera import backproject
 from .tsdf import TSDFVolume
 
 
-def point_cloud_from_renders(renders: list[dict], poses, K, min_opacity=0.9, max_std=0.05, voxel_size=0.005):
+def point_cloud_from_renders(renders: list[dict], poses, K, min_opacity=0.9, max_std=0.05, voxel_size=0.005,
+                             stride: int = 1):
     """Coloured point cloud and per-point depth sigma (m) from renders at `poses`.
 
     renders: dicts with color (H, W, 3), depth and depth_std (H, W) z metres, opacity (H, W).
-    Points are voxel-downsampled (voxel_size m), averaging colour and sigma.
-    Returns (o3d.geometry.PointCloud, sigma (M,) float32).
+    Every `stride`-th pixel along rows and columns gives a point; points are voxel-downsampled
+    (voxel_size m), averaging colour and sigma. Returns (o3d.geometry.PointCloud, sigma (M,) float32).
     """
     pts, cols, sig = [], [], []
     for r, pose in zip(renders, poses):
         mask = (r["opacity"] >= min_opacity) & (r["depth_std"] <= max_std) & (r["depth"] > 0)
+        mask[np.arange(mask.shape[0]) % stride != 0] = False
+        mask[:, np.arange(mask.shape[1]) % stride != 0] = False
         pts.append(backproject(r["depth"], K, pose, mask)[0])
         cols.append(r["color"][mask])
         sig.append(r["depth_std"][mask])
@@ -43,12 +46,14 @@ def point_cloud_from_renders(renders: list[dict], poses, K, min_opacity=0.9, max
     return cloud.to_legacy(), sigma
 
 
-def mesh_from_renders(renders: list[dict], poses, K, voxel_size=0.01, min_opacity=0.9, max_std=0.05, depth_max=5.0):
+def mesh_from_renders(renders: list[dict], poses, K, voxel_size=0.01, min_opacity=0.9, max_std=0.05, depth_max=5.0,
+                      min_views: int = 1):
     """Coloured mesh: TSDF fusion (Open3D) of rendered depth/colour where confident.
 
-    Rendered depth is already filtered by opacity and depth_std, so one view suffices per voxel.
+    Rendered depth is already filtered by opacity and depth_std, so by default (min_views 1)
+    one view suffices per voxel; min_views 2 keeps only surfaces that at least two renders see.
     """
-    volume = TSDFVolume(voxel_size, 4 * voxel_size, depth_max, weight_threshold=0.5)
+    volume = TSDFVolume(voxel_size, 4 * voxel_size, depth_max, weight_threshold=min_views - 0.5)
     for r, pose in zip(renders, poses):
         depth = np.where((r["opacity"] >= min_opacity) & (r["depth_std"] <= max_std), r["depth"], 0).astype(np.float32)
         color = (np.clip(r["color"], 0, 1) * 255).astype(np.uint8)

@@ -294,9 +294,9 @@ class Reconstruction:
             scale_intrinsic(views.intrinsic, cfg.fused_scale)
         K = intrinsic_matrix(intr)
         renders = [self.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
-        max_std = cfg.max_point_std  # applies to the model's depth, before any fusion
-        if views is not None:  # fused at the training resolution: the sensor's own
-            K, max_std = views.K, np.inf
+        max_std, stride = cfg.max_point_std, 1  # max_std applies to the model's depth, before any fusion
+        if views is not None:  # fused at the training resolution (the sensor's own), points as dense as export.scale's
+            K, max_std, stride = views.K, np.inf, max(1, round(1 / cfg.scale))
             noise = self.config.targets.sensor_noise()
             for k, r in enumerate(renders):
                 z = self._in_box(views[k].depth, K, poses[k])
@@ -307,9 +307,10 @@ class Reconstruction:
                 fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
                 renders[k] = fused
         self.point_cloud, self.point_sigma = point_cloud_from_renders(
-            renders, poses, K, cfg.min_opacity, max_std, voxel_size=cfg.mesh_voxel_size / 2
+            renders, poses, K, cfg.min_opacity, max_std, voxel_size=cfg.mesh_voxel_size / 2, stride=stride
         )
-        self.mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, max_std)
+        self.mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, max_std,
+                                      min_views=cfg.mesh_min_views)
         self.mesh_sigma = vertex_sigma(self.mesh, np.asarray(self.point_cloud.points), self.point_sigma)
 
     def write_nerfstudio(self, path, sequence: RGBDSequence, progress: bool = False) -> Path:

@@ -141,6 +141,9 @@ def test_point_cloud_from_renders_keeps_confident_points_with_their_sigma():
     down, s2 = point_cloud_from_renders(renders, poses, K, voxel_size=0.05)
     assert 0 < len(down.points) == len(s2) < len(pts)
     np.testing.assert_allclose(s2, 0.01, atol=1e-6)
+    # every 2nd pixel: rows 6, 8, .., 28 (12) and columns 6, .., 38 (17) of the confident 25 x 35 of each
+    strided, s3 = point_cloud_from_renders(renders, poses, K, voxel_size=0, stride=2)
+    assert len(strided.points) == len(s3) == 2 * 12 * 17
 
 
 def test_point_cloud_ply_round_trip_keeps_depth_sigma(tmp_path):
@@ -199,6 +202,21 @@ def test_mesh_from_renders_of_three_confident_views_is_not_empty():
     K = np.asarray(intrinsic(80, 60, 60.0).intrinsic_matrix)
     mesh = mesh_from_renders(renders, poses, K, voxel_size=0.02)
     assert len(mesh.triangles) > 100
+
+
+def test_mesh_from_renders_with_min_views_2_keeps_only_what_two_renders_see():
+    """Two renders of the plane z = 1.5 m: the second has depth only in its left half. With
+    min_views 2 the mesh spans the overlap only (x from -0.95 to ~0.05 m,
+    where the second one looks, less a voxel); with 1 both views reach (x from -1 to 1)."""
+    renders, poses = plane_renders(2, 60, 80)
+    for r in renders:
+        r["opacity"][:], r["depth_std"][:] = 1.0, 0.01
+    renders[1]["depth"][:, 40:] = 0  # the second sees the left half only
+    K = np.asarray(intrinsic(80, 60, 60.0).intrinsic_matrix)
+    x_all = np.asarray(mesh_from_renders(renders, poses, K, voxel_size=0.02).vertices)[:, 0]
+    x_two = np.asarray(mesh_from_renders(renders, poses, K, voxel_size=0.02, min_views=2).vertices)[:, 0]
+    assert x_all.max() > 0.9 and -0.06 < x_two.max() < 0.1
+    assert x_all.min() == pytest.approx(-1.0, abs=0.03) and x_two.min() == pytest.approx(-0.95, abs=0.03)  # the overlap
 
 
 def test_uncertainty_colors_map_sigma_to_a_colormap():
