@@ -5,7 +5,7 @@ Per dataset and loss (pnerf, dsnerf, photometric: the same configuration, the `f
 ground-truth poses, every 4th frame held out, 320x240), one run:
   * the exported mesh, fused with the sensor depth (what reconstruct() writes; with pnerf also
     with the model's depth kept in the sensor's holes only where its sigma is at most
-    --fill-std), and the model-only mesh (the same export without the sensor), against the
+    --fill-std, and with export.mesh_min_views 2), and the model-only mesh (the same export without the sensor), against the
     TSDF mesh Open3D fuses
     from the same training frames and poses: accuracy, completeness, F@20/50 mm against the
     exact surface (synthetic room); on every held-out frame, each mesh ray-cast at the
@@ -78,6 +78,11 @@ def run_one(spec: dict) -> dict:
         recon.export_geometry(progress=False, sequence=seq)
         meshes[f"fused, fill sigma <= {1000 * std:g} mm"] = recon.mesh
     recon.config.export.max_point_std = default_std
+    if spec["loss"] == "pnerf":  # only surfaces that two export views see
+        recon.config.export.mesh_min_views = 2
+        recon.export_geometry(progress=False, sequence=seq)
+        meshes["fused, seen in >= 2 views"] = recon.mesh
+        recon.config.export.mesh_min_views = 1
     t0 = time.perf_counter()
     recon.export_geometry(progress=False)  # the same export without the sensor
     model_only_export_s = time.perf_counter() - t0

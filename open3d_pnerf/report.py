@@ -36,4 +36,5 @@ def scores_table(scores: dict) -> list[str]:
     if "within_1" not in model:
         return lines + ["", "No depth images: depth and calibration are not scored."]
     return lines + ["", f"Depth calibration (model): {model['within_1']:.2f} / {model['within_2']:.2f} / "
-                    f"{model['within_3']:.2f} of held-out errors within 1/2/3 predicted sigmas."]
+                    f"{model['within_3']:.2f} of held-out errors within the 68.3 / 95.4 / 99.7% intervals of "
+                    "the calibrated error law (1/2/3 sigma for a Gaussian): 0.68 / 0.95 / 1.00 if honest."]
