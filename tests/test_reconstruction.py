@@ -554,7 +554,7 @@ def test_calibration_fits_on_training_frames_and_quantile_puts_68_percent_within
         assert 0 < recon.depth_sigma_scale < 10 and 0 <= recon.depth_sigma_floor < 0.2
         assert 1 <= recon.depth_sigma_dof <= 1000 and recon.depth_interval(0.954) > 2
         recon.calibrate_depth_sigma(sample, method="gaussian")
-        assert recon.depth_sigma_dof == np.inf and recon.depth_interval(0.954) == pytest.approx(2, abs=1e-3)
+        assert recon.depth_sigma_dof == np.inf and recon.depth_interval(0.9545) == pytest.approx(2, abs=1e-3)
         fitted = recon.calibrate_depth_sigma(sample, method="quantile")
         assert fitted == recon.depth_sigma_scale and 0 < fitted < 10 and recon.depth_sigma_floor == 0
         train = sample.select(recon.train_indices).at_scale(recon.config.image_scale)
