@@ -207,8 +207,8 @@ class ExportConfig:
     """Depth-sigma calibration and the mesh and point cloud made after training."""
 
     calibrate_depth_sigma: bool = True
-    """Scale the model's depth spread so that 68.3% of training-view depth errors fall within
-    1 sigma (Reconstruction.calibrate_depth_sigma)."""
+    """After training, fit how the model's depth spread becomes an error bar (a Student-t law
+    by maximum likelihood on training views: Reconstruction.calibrate_depth_sigma)."""
     scale: float = 0.5
     """Resolution of the renders used for mesh and point-cloud export, relative to training,
     when there is no sensor depth to fuse with (image-only sequences, the model-only export)."""
