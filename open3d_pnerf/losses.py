@@ -8,6 +8,7 @@ PNeRF: L = Kc L_color + Kd L_density + Kz L_depth, each an L1 over coarse and fi
               over [near, far]; sigma is floored at half the width of the bin holding mu.
   L_depth   = |sum_k w_k t_k - mu|
 DS-NeRF: sum_k -log(w_k + eps) exp(-(t_k - mu)^2 / (2 sigma^2)) delta_k.
+Optional with any of them: Mip-NeRF 360's distortion of the weights of every ray.
 Depth targets (mu, sigma) are ray distances in metres (z-depth times ||d||); NaN = none.
 
 A method (:class:`LossMethod`) is the colour term plus its own depth terms; ``LOSS_METHODS``
@@ -35,6 +36,9 @@ class LossWeights:
     """Kz: expected-depth L1, per metre of error; at the start of training."""
     dsnerf: float = 0.05
     """DS-NeRF ray-distribution loss weight (loss="dsnerf" only)."""
+    distortion: float = 0.0
+    """Mip-NeRF 360's distortion regulariser on every ray's weights (per metre; 0 = off), with
+    any loss: pulls each ray's weights into one compact interval."""
 
 
 TERMS = tuple(f.name for f in dataclasses.fields(LossWeights))
@@ -69,6 +73,16 @@ def density_l1(weights, edges, mu, sigma, eps: float = 1e-6) -> torch.Tensor:
 def depth_l1(weights, t, mu) -> torch.Tensor:
     """(R,) |sum_k w_k t_k - mu| (the paper's unnormalised expected depth; metres)."""
     return ((weights * t).sum(-1) - mu).abs()
+
+
+def distortion(weights, edges) -> torch.Tensor:
+    """(R,) Mip-NeRF 360's distortion of weights (R, S) in bins edges (R, S + 1) (metres):
+    sum_ij w_i w_j |m_i - m_j| + sum_i w_i^2 delta_i / 3, m the bin midpoints, delta their
+    widths; the pairwise sum in O(S) as 2 sum_i w_i (m_i W_<i - (w m)_<i) for sorted bins."""
+    mid, delta = (edges[:, 1:] + edges[:, :-1]) / 2, edges[:, 1:] - edges[:, :-1]
+    before = torch.cumsum(weights, -1) - weights  # W_<i
+    before_m = torch.cumsum(weights * mid, -1) - weights * mid
+    return 2 * (weights * (mid * before - before_m)).sum(-1) + (weights**2 * delta).sum(-1) / 3
 
 
 def dsnerf_loss(weights, t, edges, mu, sigma, eps: float = 1e-5) -> torch.Tensor:
@@ -148,6 +162,8 @@ def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights
     terms = dict.fromkeys(TERMS, 0.0)
     for r in renders:
         terms["color"] = terms["color"] + color_l1(r.color, target_rgb) * share
+        if weights.distortion > 0:
+            terms["distortion"] = terms["distortion"] + distortion(r.weights, r.edges).mean() * share
         if not method.terms or not has.any():
             continue
         per_ray = method.depth_terms(r.weights[has], r.t[has], r.edges[has], mu_v, sigma_v)

@@ -12,6 +12,7 @@ from open3d_pnerf.losses import (
     color_l1,
     density_l1,
     depth_l1,
+    distortion,
     dsnerf_loss,
     gaussian_bin_masses,
     total_loss,
@@ -211,6 +212,34 @@ def test_dsnerf_loss_is_finite_at_zero_weights_and_prefers_a_peak_at_mu():
     at_mu = dsnerf_loss(peaked_at(2.0), t, edges, mu, sigma).item()
     elsewhere = dsnerf_loss(peaked_at(2.6), t, edges, mu, sigma).item()
     assert at_mu < elsewhere - 1.0
+
+
+def test_distortion_is_mipnerf360s_sum_and_smallest_for_one_compact_peak():
+    # two bins [0, 1], [1, 3] with weights 0.3, 0.5: 2 * 0.3 * 0.5 * |0.5 - 2| + (0.09 * 1 + 0.25 * 2) / 3
+    value = distortion(torch.tensor([[0.3, 0.5]]), torch.tensor([[0.0, 1.0, 3.0]]))
+    assert value.item() == pytest.approx(0.45 + 0.59 / 3)
+    g = torch.Generator().manual_seed(0)  # the O(S) form equals the pairwise double sum
+    w = torch.rand(4, 9, generator=g)
+    edges = torch.sort(torch.rand(4, 10, generator=g), -1).values
+    mid, delta = (edges[:, 1:] + edges[:, :-1]) / 2, edges[:, 1:] - edges[:, :-1]
+    pairs = (w[:, :, None] * w[:, None, :] * (mid[:, :, None] - mid[:, None, :]).abs()).sum((1, 2))
+    torch.testing.assert_close(distortion(w, edges), pairs + (w**2 * delta).sum(-1) / 3)
+    # the same mass in one bin scores lower than split between two far apart
+    edges = uniform_edges(1, 32)
+    one, two = torch.zeros(1, 32), torch.zeros(1, 32)
+    one[0, 10], two[0, [5, 25]] = 0.8, 0.4
+    assert distortion(one, edges).item() < distortion(two, edges).item()
+
+
+def test_total_loss_adds_the_distortion_of_every_ray_only_when_weighted(two_ray_batch):
+    edges, t, w, color, target = two_ray_batch
+    render = make_render(w, edges, color)
+    mu, sigma = torch.tensor([1.5, float("nan"), 2.5]), torch.full((3,), 0.1)
+    off = total_loss("pnerf", [render], target, mu, sigma)
+    on = total_loss("pnerf", [render], target, mu, sigma, LossWeights(distortion=0.2))
+    torch.testing.assert_close(on["distortion"], distortion(w, edges).mean())  # every ray, with a target or not
+    torch.testing.assert_close(on["loss"], off["loss"] + 0.2 * on["distortion"])
+    assert off["distortion"].item() == 0.0
 
 
 # -- total_loss ------------------------------------------------------------------------------
