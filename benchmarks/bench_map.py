@@ -68,7 +68,8 @@ def run_one(spec: dict) -> dict:
     seq, reference = load(spec["source"], Path(spec["cache"]))
     poses, covs = poses_for(spec["source"], seq, "gt", Path(spec["cache"]))
     cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=4, train_views=VIEWS[spec["dataset"]], loss=spec["loss"],
-                                         seed=spec["seed"], progress=False)
+                                         seed=spec["seed"], progress=False,
+                                         **{"objective.weights.distortion": spec["distortion"]})
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
     meshes = {"fused": recon.mesh, "tsdf": comparison.tsdf.mesh()}
@@ -161,6 +162,8 @@ def main():
     ap.add_argument("--preset", default="fast", help="'test': a smoke test of the script")
     ap.add_argument("--fill-std", default="0.02,0.05",
                     help="pnerf only: also export with the model's depth kept where its sigma is at most these (m)")
+    ap.add_argument("--distortion", type=float, default=0.0,
+                    help="weight of Mip-NeRF 360's distortion regulariser (objective.weights.distortion)")
     ap.add_argument("--name", default="map")
     args = ap.parse_args()
     datasets, losses = args.datasets.split(","), args.losses.split(",")
@@ -173,13 +176,14 @@ def main():
     synthetic = prepare_synthetic(cache, False) if any(d.startswith("synthetic") for d in datasets) else None
     specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else d, loss=loss, seed=args.seed,
                   threads=args.threads, preset=args.preset, cache=str(cache),
-                  fill_std=[float(v) for v in args.fill_std.split(",") if v])
+                  fill_std=[float(v) for v in args.fill_std.split(",") if v], distortion=args.distortion)
              for d in datasets for loss in losses if d not in MESH_ONLY or loss == "pnerf"]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
         f"{r['dataset']:14s} {r['loss']:12s} fused {r['meshes']['fused']} tsdf {r['meshes']['tsdf']} "
         f"field {r['field']}"))
     meta = {"machine": machine(),
             "seed": args.seed, "threads": args.threads, "jobs": args.jobs, "preset": args.preset, "fill_std": args.fill_std,
+            "distortion": args.distortion,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS}
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(results, meta))
