@@ -11,6 +11,7 @@ is kept.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from .errors import InputError
@@ -73,10 +74,8 @@ def fuse_render_with_sensor(render: dict, depth: np.ndarray, depth_sigma: np.nda
 
 
 def nearest_upsample(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """`image` (h, w, ...) at `size` (H, W) >= (h, w) by nearest pixel centre: pixel (u, v) takes
-    the pixel of the small image whose centre is nearest to its own (pixel centres at integer
-    coordinates, as :func:`~open3d_pnerf.camera.scale_intrinsic` scales an intrinsic)."""
-    (h, w), (H, W) = image.shape[:2], size
-    rows = np.clip(np.round((np.arange(H) + 0.5) * h / H - 0.5), 0, h - 1).astype(int)
-    cols = np.clip(np.round((np.arange(W) + 0.5) * w / W - 0.5), 0, w - 1).astype(int)
-    return image[rows[:, None], cols[None, :]]
+    """`image` (h, w) or (h, w, C <= 4) at `size` (H, W) >= (h, w) by nearest pixel centre: pixel
+    (u, v) takes the pixel of the small image whose centre is nearest to its own (pixel centres
+    at integer coordinates, as :func:`~open3d_pnerf.camera.scale_intrinsic` scales an intrinsic;
+    OpenCV's INTER_NEAREST_EXACT, not INTER_NEAREST, which is off by up to half a pixel)."""
+    return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_NEAREST_EXACT)
