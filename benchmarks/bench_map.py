@@ -5,9 +5,9 @@ Per dataset and loss (pnerf, dsnerf, photometric: the same configuration, the `f
 ground-truth poses, every 4th frame held out, 320x240), one run:
   * the exported mesh, fused with the sensor depth (what reconstruct() writes; with pnerf also
     with the model's depth kept in the sensor's holes only where its sigma is at most
-    --fill-std, and with export.mesh_min_views 2), and the model-only mesh (the same export without the sensor), against the
-    TSDF mesh Open3D fuses
-    from the same training frames and poses: accuracy, completeness, F@20/50 mm against the
+    --fill-std, and with export.mesh_min_views 2), and the model-only mesh (the same export
+    without the sensor), against the TSDF mesh Open3D fuses from the same training frames and
+    poses: accuracy, completeness, F@20/50 mm against the
     exact surface (synthetic room); on every held-out frame, each mesh ray-cast at the
     held-out pose: depth L1 on its hits and the share of the sensor's pixels it covers;
   * the field's own held-out renders: depth L1 over every pixel with sensor depth, and the
@@ -19,6 +19,7 @@ Datasets: synthetic (the room of bench_suite.py: 10 training views, and all 36 w
 fr1/xyz, all 24 training frames), 7scenes (redkitchen 150-199, all 38 training frames).
 
     python benchmarks/bench_map.py [--datasets synthetic,synthetic_all,tum,7scenes] [--losses pnerf,dsnerf,photometric]
+                                   [--set objective.weights.distortion=0.1 ...] (config overrides of every run)
 
 Writes benchmarks/results/<name>.json and <name>.md (name: map).
 """
@@ -56,6 +57,30 @@ def mesh_on_heldout(mesh, recon, sequence) -> dict:
     return {"depth_l1": float(err.mean()) if err.size else float("nan"), "coverage": float(covered / max(sensor, 1))}
 
 
+def _override(item: str) -> tuple[str, object]:
+    """'key=value' -> (key, value as JSON: a number, true/false, ... or else the string)."""
+    key, sep, value = item.partition("=")
+    if not (key and sep):
+        raise SystemExit(f"--set expects KEY=VALUE, got {item!r}")
+    try:
+        return key, json.loads(value)
+    except json.JSONDecodeError:
+        return key, value
+
+
+def export_with(recon, sequence, **export):
+    """The fused mesh of `recon` exported with these ExportConfig fields changed (restored after)."""
+    saved = {k: getattr(recon.config.export, k) for k in export}
+    try:
+        for k, v in export.items():
+            setattr(recon.config.export, k, v)
+        recon.export_geometry(progress=False, sequence=sequence)
+        return recon.mesh
+    finally:
+        for k, v in saved.items():
+            setattr(recon.config.export, k, v)
+
+
 def run_one(spec: dict) -> dict:
     """Train one (dataset, loss), export fused and model-only, compare with the TSDF."""
     import torch
@@ -68,22 +93,14 @@ def run_one(spec: dict) -> dict:
     seq, reference = load(spec["source"], Path(spec["cache"]))
     poses, covs = poses_for(spec["source"], seq, "gt", Path(spec["cache"]))
     cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=4, train_views=VIEWS[spec["dataset"]], loss=spec["loss"],
-                                         seed=spec["seed"], progress=False,
-                                         **{"objective.weights.distortion": spec["distortion"]})
+                                         seed=spec["seed"], progress=False, **spec["overrides"])
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
     meshes = {"fused": recon.mesh, "tsdf": comparison.tsdf.mesh()}
-    default_std = recon.config.export.max_point_std
-    for std in spec["fill_std"] if spec["loss"] == "pnerf" else ():  # model depth kept where the sensor has none
-        recon.config.export.max_point_std = std
-        recon.export_geometry(progress=False, sequence=seq)
-        meshes[f"fused, fill sigma <= {1000 * std:g} mm"] = recon.mesh
-    recon.config.export.max_point_std = default_std
-    if spec["loss"] == "pnerf":  # only surfaces that two export views see
-        recon.config.export.mesh_min_views = 2
-        recon.export_geometry(progress=False, sequence=seq)
-        meshes["fused, seen in >= 2 views"] = recon.mesh
-        recon.config.export.mesh_min_views = 1
+    if spec["loss"] == "pnerf":  # variants of the fused export
+        for std in spec["fill_std"]:  # the model's depth kept in the sensor's holes only where this confident
+            meshes[f"fused, fill sigma <= {1000 * std:g} mm"] = export_with(recon, seq, max_point_std=std)
+        meshes["fused, seen in >= 2 views"] = export_with(recon, seq, mesh_min_views=2)  # seen by two export views
     t0 = time.perf_counter()
     recon.export_geometry(progress=False)  # the same export without the sensor
     model_only_export_s = time.perf_counter() - t0
@@ -118,7 +135,8 @@ def run_one(spec: dict) -> dict:
 
 def markdown(results: list[dict], meta: dict) -> str:
     lines = [f"`{meta['preset']}` preset, GT poses, every 4th frame held out, 320x240, seed {meta['seed']}; {meta['threads']} "
-             f"thread(s) per run, {meta['jobs']} at once; {meta['wall_minutes']} min in all; {meta['machine']}.", "",
+             f"thread(s) per run, {meta['jobs']} at once; {meta['wall_minutes']} min in all; {meta['machine']}."
+             + "".join(f" {k}={v}" for k, v in meta.get("overrides", {}).items()), "",
              "Meshes (held-out frames: each mesh ray-cast at the held-out poses; acc./compl./F against the exact "
              "surface, synthetic only):", "",
              "| dataset | views | loss | mesh | acc. (mm) | compl. (mm) | F@20mm | F@50mm | held-out depth L1 on hits (mm) "
@@ -162,11 +180,12 @@ def main():
     ap.add_argument("--preset", default="fast", help="'test': a smoke test of the script")
     ap.add_argument("--fill-std", default="0.02,0.05",
                     help="pnerf only: also export with the model's depth kept where its sigma is at most these (m)")
-    ap.add_argument("--distortion", type=float, default=0.0,
-                    help="weight of Mip-NeRF 360's distortion regulariser (objective.weights.distortion)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override of every run, e.g. objective.weights.distortion=0.1 (repeatable)")
     ap.add_argument("--name", default="map")
     args = ap.parse_args()
     datasets, losses = args.datasets.split(","), args.losses.split(",")
+    overrides = dict(_override(item) for item in args.set)
     missing = [d for d in datasets if not d.startswith("synthetic") and not PATHS.get(d, SHARED / "?").is_dir()]
     if missing:
         raise SystemExit(f"shared data not found for {missing} (expected under {SHARED})")
@@ -176,14 +195,14 @@ def main():
     synthetic = prepare_synthetic(cache, False) if any(d.startswith("synthetic") for d in datasets) else None
     specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else d, loss=loss, seed=args.seed,
                   threads=args.threads, preset=args.preset, cache=str(cache),
-                  fill_std=[float(v) for v in args.fill_std.split(",") if v], distortion=args.distortion)
+                  fill_std=[float(v) for v in args.fill_std.split(",") if v], overrides=overrides)
              for d in datasets for loss in losses if d not in MESH_ONLY or loss == "pnerf"]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
         f"{r['dataset']:14s} {r['loss']:12s} fused {r['meshes']['fused']} tsdf {r['meshes']['tsdf']} "
         f"field {r['field']}"))
     meta = {"machine": machine(),
             "seed": args.seed, "threads": args.threads, "jobs": args.jobs, "preset": args.preset, "fill_std": args.fill_std,
-            "distortion": args.distortion,
+            "overrides": overrides,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS}
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(results, meta))
