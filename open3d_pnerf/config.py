@@ -215,8 +215,8 @@ class ExportConfig:
     fused_scale: float = 0.25
     """Resolution of the renders fused with sensor depth, relative to training: the fused
     export works at the training resolution (the sensor keeps its own pixels, the render fills
-    its holes), and 0.25 gave the mesh and held-out depth of 0.5 on the synthetic room (all
-    views) in half the time."""
+    its holes). Chosen on the synthetic room with all views: the same mesh and held-out depth
+    as 0.5 in half the export time (benchmarks/results/tuning_fused_scale_*.md)."""
     max_views: int = 48
     """Render at most this many training views (evenly spaced): bounds export time and memory."""
     mesh_voxel_size: float = 0.01
