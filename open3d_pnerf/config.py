@@ -26,6 +26,7 @@ import torch
 from .distributed import BACKENDS
 from .errors import ConfigError
 from .fields import GridField, HashGridField, VanillaNeRFField
+from .fields import native
 from .fields.encodings import BACKENDS as HASHGRID_BACKENDS
 from .losses import LOSSES, LossWeights
 from .rendering.volume import SamplingConfig
@@ -455,6 +456,13 @@ class ReconstructionConfig:
                 good = False
             if not good:
                 raise ConfigError(f"config field {name}={value!r} is invalid: expected {expected}")
+        if self.field == "hashgrid" and self.hashgrid.backend == "kernel":
+            if self.device.split(":")[0] != "cpu":
+                raise ConfigError(f"config field hashgrid.backend='kernel' is a CPU kernel, but device={self.device!r}; "
+                                  "use backend 'auto' (the PyTorch path on other devices) or 'torch'")
+            if not native.available():
+                raise ConfigError(f"config field hashgrid.backend='kernel': the fused kernel cannot run here "
+                                  f"({native.unavailable_reason()}); use backend 'auto' or 'torch'")
 
 
 def _set(tree: dict, path: list[str], value) -> None:

@@ -1,6 +1,7 @@
 """The open3d-pnerf command line, run in-process through cli.main (and once as a console script)."""
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -216,3 +217,21 @@ def test_ctrl_c_during_training_exits_130_saying_how_to_resume_or_finish(tmp_pat
     assert (out / "model.pt").is_file() and (out / "trajectory.json").is_file() and (out / "report.md").is_file()
     with pytest.raises(SystemExit):  # --finish needs --resume
         cli.main(["reconstruct", "sample", "--finish"])
+
+
+def test_insisting_on_a_kernel_that_cannot_run_is_one_config_error_before_any_work(tmp_path):
+    """hashgrid.backend=kernel where the kernel cannot run (here: turned off) fails at the config,
+    before tracking or targets, as one line; in Python, as a ConfigError from validate()."""
+    env = {**os.environ, "PNERF_NATIVE": "0"}
+    run = subprocess.run([sys.executable, "-m", "open3d_pnerf.cli", "--quiet", "reconstruct", "sample", "--out",
+                          str(tmp_path / "out"), "--set", "hashgrid.backend=kernel"], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == cli.EXIT_ERROR
+    err = run.stderr.strip().splitlines()
+    assert len(err) == 1 and "hashgrid.backend='kernel'" in err[0] and "PNERF_NATIVE=0" in err[0], run.stderr
+    assert not (tmp_path / "out" / "tracking").exists()
+    script = ("import open3d_pnerf as pn\n"
+              "try:\n    pn.ReconstructionConfig().replace(**{'hashgrid.backend': 'kernel'})\n"
+              "except pn.errors.ConfigError as exc:\n    print('ConfigError', exc)\n")
+    run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    assert run.stdout.startswith("ConfigError config field hashgrid.backend='kernel'"), run.stdout + run.stderr

@@ -6,6 +6,7 @@ import math
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -256,23 +257,169 @@ def test_the_kernel_gives_autograd_grad_its_gradients_and_leaves_dot_grad_alone(
     torch.testing.assert_close(enc.table.grad, expected)
 
 
-def test_without_a_compiler_the_hash_grid_falls_back_to_pure_pytorch_with_one_warning(tmp_path):
-    """A machine without g++ (a fresh cache, no compiler on PATH) trains on the pure-PyTorch path."""
-    script = (
-        "import warnings, torch\n"
-        "from open3d_pnerf.fields import HashGridEncoding, native\n"
-        "with warnings.catch_warnings(record=True) as caught:\n"
-        "    warnings.simplefilter('always')\n"
-        "    enc = HashGridEncoding(levels=2, log2_table_size=8, base_resolution=4, max_resolution=16)\n"
-        "    x = torch.rand(10, 3)\n"
-        "    assert not enc.uses_kernel(x) and enc(x).shape == (10, 4)\n"
-        "    enc(x)\n"
-        "print(len([w for w in caught if 'no C++ compiler' in str(w.message)]))\n"
-    )
-    env = {**os.environ, "PATH": str(tmp_path), "XDG_CACHE_HOME": str(tmp_path), "CXX": "", "PNERF_NATIVE": "1"}
-    run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+def small_grid(backend: str, dtype=torch.float32) -> HashGridEncoding:
+    """Two dense levels (4, 8) and two hashed ones (16, 32) with random parameters."""
+    torch.manual_seed(3)
+    enc = HashGridEncoding(levels=4, features=2, log2_table_size=10, base_resolution=4, max_resolution=32,
+                           backend=backend).to(dtype)
+    with torch.no_grad():
+        for p in enc.parameters():
+            p.uniform_(-1, 1)
+    return enc
+
+
+def kernel_inputs(enc: HashGridEncoding) -> tuple:
+    """The operator's arguments after x: the encoding's parameters and its level layout."""
+    return ([*enc.dense.grids, enc.table], *enc._kernel_spec)
+
+
+@needs_kernel
+def test_the_kernel_operator_passes_gradcheck_in_its_positions_and_parameters():
+    enc = small_grid("kernel", torch.float64)
+    params, *spec = kernel_inputs(enc)
+    g = torch.Generator().manual_seed(4)
+    x = (0.02 + 0.96 * torch.rand(12, 3, dtype=torch.float64, generator=g)).requires_grad_(True)
+    leaves = [p.detach().clone().requires_grad_(True) for p in params]
+
+    def encode(x, *params):
+        return native.hashgrid_encode(x, list(params), *spec)
+
+    assert torch.autograd.gradcheck(encode, (x, *leaves))
+
+
+@needs_kernel
+def test_the_kernel_operator_passes_torch_library_opcheck():
+    enc = small_grid("kernel")
+    params, *spec = kernel_inputs(enc)
+    x = torch.rand(50, 3)
+    known = native.hashgrid_encode(x[30:], params, *spec)
+    for args in ((x, params, *spec), (x.requires_grad_(True), params, *spec, known)):
+        torch.library.opcheck(torch.ops.open3d_pnerf.hashgrid_encode.default, args)
+
+
+@needs_kernel
+def test_known_encodings_are_copied_and_their_rows_still_get_their_gradient():
+    enc = small_grid("kernel")
+    params, *spec = kernel_inputs(enc)
+    x, g = torch.rand(40, 3), torch.randn(40, 8)
+    whole = native.hashgrid_encode(x, params, *spec)
+    (whole * g).sum().backward()
+    expected = [p.grad.clone() for p in params]
+    enc.zero_grad(set_to_none=True)
+    marker = torch.full((15, 8), 7.0)  # not the encoding: shows that the values are copied, not computed
+    out = native.hashgrid_encode(x, params, *spec, marker)
+    torch.testing.assert_close(out[:25], whole[:25])
+    assert (out[25:] == 7.0).all()
+    (out * g).sum().backward()
+    for p, e in zip(params, expected):
+        torch.testing.assert_close(p.grad, e)
+
+
+@pytest.mark.parametrize("backend", PATHS)
+def test_nan_and_out_of_range_points_are_defined_and_the_same_on_both_paths(backend):
+    """A point outside [0, 1] is clamped onto the box (no gradient along the clamped axis); a point
+    with a NaN or infinite coordinate encodes to 0 and passes no gradient, on the kernel as on the
+    PyTorch path (NaN used to be undefined behaviour in the kernel)."""
+    reference, enc = small_grid("torch"), small_grid(backend)
+    x = torch.rand(9, 3)
+    x[0, 1] = float("nan")
+    x[1] = float("inf")
+    x[2, 0] = -float("inf")
+    x[3] = torch.tensor([1.5, -0.2, 0.5])
+    x[4] = torch.tensor([0.0, 0.3, 0.5])  # on a face: inside
+    g = torch.randn(9, 8)
+    grads = []
+    for e in (reference, enc):
+        xi = x.clone().requires_grad_(True)
+        out = e(xi)
+        (out * g).sum().backward()
+        grads.append((out.detach(), xi.grad, [p.grad for p in e.parameters()]))
+    (out_r, gx_r, gp_r), (out_k, gx_k, gp_k) = grads
+    assert torch.isfinite(out_k).all() and (out_k[:3] == 0).all()
+    torch.testing.assert_close(out_k, out_r)
+    torch.testing.assert_close(gx_k, gx_r, atol=1e-4, rtol=1e-4)
+    assert (gx_k[:3] == 0).all() and gx_k[3, 0] == 0 and gx_k[3, 1] == 0 and gx_k[3, 2] != 0
+    for a, b in zip(gp_k, gp_r):
+        assert torch.isfinite(a).all()
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    clamped = x.clone()
+    clamped[3] = torch.tensor([1.0, 0.0, 0.5])
+    torch.testing.assert_close(out_k[3], enc(clamped)[3].detach())
+
+
+def run_isolated(script: str, tmp_path, **env) -> subprocess.CompletedProcess:
+    """Python `script` in a fresh process with a fresh kernel cache, the default compiler (no CXX),
+    and `env` on top."""
+    base = {k: v for k, v in os.environ.items() if k != "CXX"}
+    env = {**base, "XDG_CACHE_HOME": str(tmp_path / "cache"), "PNERF_NATIVE": "1", **env}
+    return subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
+
+
+FALLBACK = (
+    "import warnings, torch\n"
+    "from open3d_pnerf.fields import HashGridEncoding, native\n"
+    "with warnings.catch_warnings(record=True) as caught:\n"
+    "    warnings.simplefilter('always')\n"
+    "    enc = HashGridEncoding(levels=2, log2_table_size=8, base_resolution=4, max_resolution=16)\n"
+    "    x = torch.rand(10, 3)\n"
+    "    assert not enc.uses_kernel(x) and enc(x).shape == (10, 4)\n"
+    "    enc(x).sum().backward()\n"
+    "said = [str(w.message) for w in caught if 'hash-grid kernel cannot run here' in str(w.message)]\n"
+    "print(len(said)); print(said[0] if said else '')\n"
+)
+
+
+def put_a_broken_library_in_the_cache(tmp_path) -> None:
+    """A corrupt build of this kernel in the cache: a library the loader cannot open (as one whose
+    OpenMP runtime is missing)."""
+    where = run_isolated("from open3d_pnerf.fields import native; print(native.build_directory())", tmp_path)
+    folder = Path(where.stdout.strip())
+    folder.mkdir(parents=True)
+    (folder / f"{native.NAME}.so").write_bytes(b"\x7fELF truncated")
+
+
+@pytest.mark.parametrize("case, cause", [
+    ("no compiler", "no C++ compiler found"),
+    ("a cache that cannot be written", "Not a directory"),
+    ("a compiler that fails", "error: no OpenMP"),
+    ("a library that does not load", "OSError"),
+])
+def test_every_build_or_load_failure_falls_back_to_pytorch_with_one_warning_naming_the_cause(case, cause, tmp_path):
+    env = {}
+    if case == "no compiler":  # a machine without g++: nothing on PATH
+        env = {"PATH": str(tmp_path)}
+    elif case == "a cache that cannot be written":  # a file where the cache folder should be
+        (tmp_path / "cache").write_text("not a folder")
+    elif case == "a compiler that fails":  # it answers --version like g++, and fails to compile
+        compiler = tmp_path / "c++"
+        compiler.write_text('#!/bin/sh\n[ "$1" = --version ] && exec g++ --version\necho "error: no OpenMP" >&2; exit 1\n')
+        compiler.chmod(0o755)
+        env = {"CXX": str(compiler)}
+    else:
+        put_a_broken_library_in_the_cache(tmp_path)
+    run = run_isolated(FALLBACK, tmp_path, **env)
     assert run.returncode == 0, run.stderr
-    assert run.stdout.strip() == "1"  # one line says so, once
+    count, message = run.stdout.strip().split("\n", 1)
+    assert count == "1", run.stdout  # one warning, once
+    assert cause in message, message
+
+
+def test_pnerf_native_0_turns_the_kernel_off_without_a_warning(tmp_path):
+    run = run_isolated(FALLBACK, tmp_path, PNERF_NATIVE="0")
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip().split("\n")[0] == "0"
+
+
+def test_a_kernel_built_once_loads_from_its_cache_without_building(tmp_path):
+    script = ("import time; from open3d_pnerf.fields import native; t = time.perf_counter(); "
+              "print(native.unavailable_reason(), round(time.perf_counter() - t, 1))")
+    first = run_isolated(script, tmp_path)
+    assert first.stdout.startswith("None"), first.stdout + first.stderr
+    folders = list((tmp_path / "cache" / "open3d_pnerf").iterdir())  # one build, its library, no lock left
+    assert len(folders) == 1 and (folders[0] / f"{native.NAME}.so").is_file() and not (folders[0] / "lock").exists()
+    (folders[0] / "build.ninja").unlink()  # nothing left to build with: loading must not need it
+    second = run_isolated(script, tmp_path, PATH=str(tmp_path))  # nor a compiler or ninja
+    assert second.stdout.startswith("None"), second.stdout + second.stderr
 
 
 def test_hashed_trilinear_gradcheck_of_the_table_and_the_weights():

@@ -351,7 +351,10 @@ def test_the_sigma_floor_never_binds_on_the_fine_render_of_a_target_ray(sigma_z)
     from open3d_pnerf.rendering import Rays, SamplingConfig, render_rays
 
     class Fog:
-        def geometry(self, x):
+        def encode(self, x, known=None):
+            return x
+
+        def geometry(self, x, encoded=None):
             return torch.full((x.shape[0],), 0.3), torch.zeros(x.shape[0], 1)
 
         def color(self, features, d):

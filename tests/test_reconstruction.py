@@ -237,7 +237,10 @@ class WallField(torch.nn.Module):
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32))
         self.z0, self.color_value = z0, torch.tensor(color)
 
-    def geometry(self, x):
+    def encode(self, x, known=None):
+        return x
+
+    def geometry(self, x, encoded=None):
         return torch.where(x[:, 2] >= self.z0, 1e3, 0.0), torch.zeros(len(x), 1)
 
     def color(self, features, d):

@@ -291,7 +291,7 @@ def test_composite_colour_is_the_weighted_sum():
 # -- render_rays on an analytic field ------------------------------------------------------------
 class SlabField:
     """Density `value` for world z in [z0, z0 + thickness], zero elsewhere; constant colour.
-    Records the number of points of every geometry evaluation."""
+    Records the number of points of every encoding, and of them the encodings it was given."""
 
     def __init__(self, z0=1.5, thickness=0.01, value=1e4, color=(0.2, 0.5, 0.8)):
         self.z0, self.thickness, self.value = z0, thickness, value
@@ -302,8 +302,11 @@ class SlabField:
         z = x[:, 2]
         return torch.where((z >= self.z0) & (z <= self.z0 + self.thickness), self.value, 0.0)
 
-    def geometry(self, x):
-        self.calls.append(x.shape[0])
+    def encode(self, x, known=None):
+        self.calls.append((x.shape[0], 0 if known is None else known.shape[0]))
+        return x
+
+    def geometry(self, x, encoded=None):
         return self.density(x), torch.zeros(x.shape[0], 1)
 
     def color(self, features, d):
@@ -318,7 +321,10 @@ class SmoothField:
     def density(self, x):
         return 2.0 + torch.sin(3 * x[:, 2]) + x[:, 0] ** 2
 
-    def geometry(self, x):
+    def encode(self, x, known=None):
+        return x
+
+    def geometry(self, x, encoded=None):
         return self.density(x), x  # the point itself as the feature colour() sees
 
     def color(self, features, d):
@@ -361,8 +367,10 @@ def test_render_rays_finds_an_opaque_slab(with_targets):
     assert coarse.t.shape == (len(rays), sampling.n_coarse)
     assert coarse.weights.shape == (len(rays), sampling.n_coarse)
     assert (z_of(rays, coarse.depth) - 1.2).abs().max() < 0.02
-    # the geometry of every sample is evaluated once: the coarse ones, then the others
-    assert field.calls == [len(rays) * sampling.n_coarse, len(rays) * (n_total - sampling.n_coarse)]
+    # the coarse samples are encoded (to place the others), then every sample in one call that is
+    # given the coarse encodings to reuse
+    n_coarse = len(rays) * sampling.n_coarse
+    assert field.calls == [(n_coarse, 0), (len(rays) * n_total, n_coarse)]
     if with_targets:
         has = torch.isfinite(mean)
         inside = (fine.t - mean[:, None]).abs() <= 3 * sigma[:, None] + 1e-6
@@ -403,7 +411,10 @@ def test_render_rays_is_deterministic_without_jitter_and_differentiable():
     lin = torch.nn.Linear(3, 4)
 
     class Tiny:
-        def geometry(self, x):
+        def encode(self, x, known=None):
+            return x
+
+        def geometry(self, x, encoded=None):
             h = lin(x)
             return torch.nn.functional.softplus(h[:, 0]), h[:, 1:]
 
@@ -427,7 +438,10 @@ class TwoSlabField:
     def __init__(self, z0: float, z1: float, value: float = 4.0):
         self.z0, self.z1, self.value = z0, z1, value
 
-    def geometry(self, x):
+    def encode(self, x, known=None):
+        return x
+
+    def geometry(self, x, encoded=None):
         z = x[:, 2]
         inside = ((z >= self.z0) & (z <= self.z0 + 0.1)) | ((z >= self.z1) & (z <= self.z1 + 0.1))
         return torch.where(inside, self.value, 0.0), torch.zeros(x.shape[0], 1)

@@ -1,4 +1,5 @@
-"""Input encodings in plain PyTorch: multi-resolution hash grid and frequency encoding."""
+"""Input encodings: the multi-resolution hash grid (a fused CPU kernel, or plain PyTorch), dense
+feature grids and the frequency encoding."""
 
 from __future__ import annotations
 
@@ -23,7 +24,9 @@ class HashGridEncoding(nn.Module):
     2^log2_table_size rows is stored densely, as a :class:`DenseGridEncoding` level of R + 1
     vertices per axis (fused ``grid_sample`` kernels); the finer levels share one table of
     2^log2_table_size rows each, indexed by the spatial hash of the cell corners and
-    interpolated by one fused gather (:class:`_HashedTrilinear`). This is Instant-NGP's
+    interpolated by one fused gather (:class:`_HashedTrilinear`). On a CPU, the fused kernel of
+    :mod:`~open3d_pnerf.fields.native` computes all levels at once (backend "auto" where it can
+    be built, "kernel" insisting; "torch": the PyTorch path, the kernel's reference). This is Instant-NGP's
     encoding (its coarse levels are indexed densely too) laid out for speed on a CPU: with
     8 levels up to 2048 it trains as fast per sample as the dense 16..192 grids
     (benchmarks/bench_nerf.py). resolutions: the cells per axis of each level.
@@ -55,9 +58,11 @@ class HashGridEncoding(nn.Module):
             self.table = nn.Parameter(torch.empty(len(hashed) * self.table_size, features).uniform_(-1e-4, 1e-4))
         else:
             self.register_parameter("table", None)
-        self._kernel_spec = (torch.tensor(self.resolutions, dtype=torch.int32),
-                             torch.tensor([i < self.n_dense for i in range(levels)], dtype=torch.int32),
-                             self.table_size, features)
+        if backend == "kernel" and not native.available():
+            raise RuntimeError(f"HashGridEncoding(backend='kernel'): the fused kernel cannot run here "
+                               f"({native.unavailable_reason()}); use backend 'auto' or 'torch'")
+        self._kernel_spec = (self.resolutions, [int(i < self.n_dense) for i in range(levels)], self.table_size,
+                             features)
 
     @property
     def out_dim(self) -> int:
@@ -65,25 +70,31 @@ class HashGridEncoding(nn.Module):
 
     def uses_kernel(self, x: torch.Tensor) -> bool:
         """Whether forward(x) runs the fused CPU kernel (:mod:`~open3d_pnerf.fields.native`): backend
-        "kernel", or "auto" where it is available; float32 on the CPU either way."""
-        if self.backend == "torch" or x.device.type != "cpu" or x.dtype != torch.float32 or self.levels > native.MAX_LEVELS:
+        "kernel", or "auto" where the kernel runs (one warning where it cannot), for CPU points."""
+        if self.backend == "torch" or x.device.type != "cpu" or self.levels > native.MAX_LEVELS:
             return False
-        if self.backend == "kernel" and not native.available():
-            raise RuntimeError("HashGridEncoding(backend='kernel'): the fused kernel cannot be built here (no C++ "
-                               "compiler, or PNERF_NATIVE=0); use backend='auto' or 'torch'")
-        return native.available()
+        if not native.available():
+            native.warn_fallback()
+            return False
+        return True
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = x.clamp(0, 1)
+    def forward(self, x: torch.Tensor, known: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, levels * features) encoding of points x (B, 3) in [0, 1]: a coordinate outside is
+        clamped onto the box (no gradient along it), a point with a NaN or infinite coordinate
+        encodes to 0 (and gets no gradient). known: the encoding of x's last rows, computed before
+        (values only): the kernel copies it instead of recomputing (its backward still covers those
+        rows); the PyTorch path recomputes it, as its gradient needs the computation."""
         if self.uses_kernel(x):
             params = [*(self.dense.grids if self.dense is not None else []),
                       *([self.table] if self.table is not None else [])]
-            return native.HashGridKernel.apply(self._kernel_spec, x, *params)
+            return native.hashgrid_encode(x, params, *self._kernel_spec, known)
+        finite = torch.isfinite(x).all(-1, keepdim=True)
+        x = torch.where(finite, x, 0.0).clamp(0, 1)
         parts = [self.dense(x)] if self.dense is not None else []
         if self.table is not None:
             rows, weights = self.hashed_corners(x)
             parts.append(_HashedTrilinear.apply(self.table, rows, weights).reshape(x.shape[0], -1))
-        return torch.cat(parts, 1)
+        return torch.cat(parts, 1) * finite
 
     def hashed_corners(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Table rows (B, L, 8) of the 8 cell corners of points x (B, 3) in [0, 1] on the L
@@ -153,7 +164,9 @@ class DenseGridEncoding(nn.Module):
     def out_dim(self) -> int:
         return len(self.grids) * self.features
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, known: torch.Tensor | None = None) -> torch.Tensor:
+        """Features of points x (B, 3) in [0, 1] (clamped onto the box); `known` (the encoding of
+        x's last rows) is recomputed, as its gradient needs the computation."""
         g = (x.clamp(0, 1) * 2 - 1).view(1, -1, 1, 1, 3)
         feats = [
             nn.functional.grid_sample(grid, g, mode="bilinear", align_corners=True).view(self.features, -1)

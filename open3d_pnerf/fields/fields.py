@@ -28,9 +28,10 @@ def density_activation(raw: torch.Tensor) -> torch.Tensor:
 
 
 class Field(nn.Module):
-    """Common interface: ``geometry(x) -> (sigma, features)``, ``color(features, d) -> rgb``,
-    ``forward(x, d) -> (sigma, rgb)`` (both at once) and ``density(x)``. The split lets a
-    renderer colour only the samples that show (see rendering.volume.render_rays_inference).
+    """Common interface: ``encode(x)`` (the input encoding of points), ``geometry(x, encoded) ->
+    (sigma, features)``, ``color(features, d) -> rgb``, ``forward(x, d) -> (sigma, rgb)`` (all at
+    once) and ``density(x)``. The split lets a renderer encode every sample of a batch in one
+    call and colour only the samples that show (see rendering.volume.render_rays).
 
     bf16: run the MLPs' matrix products in bfloat16 (torch.autocast on CPU or CUDA; outputs,
     activations and parameters stay float32): about twice as fast on CPUs with bf16 instructions.
@@ -60,8 +61,19 @@ class Field(nn.Module):
         sigma, features = self.geometry(x)
         return sigma, self.color(features, d)
 
-    def geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B,) density of world points x (B, 3) and (B, C) features that color() turns into colour."""
+    def inside(self, x: torch.Tensor) -> torch.Tensor:
+        """(B,) bool: whether world points x (B, 3) lie in the box."""
+        u = self.normalize(x)
+        return ((u >= 0) & (u <= 1)).all(-1)
+
+    def encode(self, x: torch.Tensor, known: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, E) input encoding of world points x (B, 3). known: the encoding of x's last rows,
+        computed before (values only), which the encoding may reuse rather than recompute."""
+        raise NotImplementedError
+
+    def geometry(self, x: torch.Tensor, encoded: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B,) density of world points x (B, 3) (1/m; zero outside the box) and (B, C) features
+        that color() turns into colour; encoded: encode(x), when already computed."""
         raise NotImplementedError
 
     def color(self, features: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -83,14 +95,15 @@ class EncodedField(Field):
         self.dir_encoding = FrequencyEncoding(3, 4)
         self.color_net = _mlp(geo_features + self.dir_encoding.out_dim, hidden, 2, 3)
 
-    def geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        u = self.normalize(x)
-        inside = ((u >= 0) & (u <= 1)).all(-1)
+    def encode(self, x: torch.Tensor, known: torch.Tensor | None = None) -> torch.Tensor:
         with record_function("pnerf.encoding"):
-            features = self.encoding(u)
+            return self.encoding(self.normalize(x), known)
+
+    def geometry(self, x: torch.Tensor, encoded: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        encoded = self.encode(x) if encoded is None else encoded
         with record_function("pnerf.mlp"), self.mlp_precision(x):
-            h = self.sigma_net(features).float()
-        return density_activation(h[:, 0]) * inside, h[:, 1:]
+            h = self.sigma_net(encoded).float()
+        return density_activation(h[:, 0]) * self.inside(x), h[:, 1:]
 
     def color(self, features: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         with record_function("pnerf.mlp"), self.mlp_precision(features):
@@ -130,17 +143,18 @@ class VanillaNeRFField(Field):
             nn.Linear(width + self.dir_encoding.out_dim, width // 2), nn.ReLU(inplace=True), nn.Linear(width // 2, 3)
         )
 
-    def geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        u = self.normalize(x)
-        inside = ((u >= 0) & (u <= 1)).all(-1)
-        e = self.pos_encoding(u * 2 - 1)
+    def encode(self, x: torch.Tensor, known: torch.Tensor | None = None) -> torch.Tensor:
+        return self.pos_encoding(self.normalize(x) * 2 - 1)
+
+    def geometry(self, x: torch.Tensor, encoded: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        e = self.encode(x) if encoded is None else encoded
         h = e
         with self.mlp_precision(x):
             for i, layer in enumerate(self.layers):
                 if i == self.skip:
                     h = torch.cat([h, e], -1)
                 h = torch.relu(layer(h))
-            return torch.relu(self.sigma_head(h)[:, 0].float()) * inside, h
+            return torch.relu(self.sigma_head(h)[:, 0].float()) * self.inside(x), h
 
     def color(self, features: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         with self.mlp_precision(features):

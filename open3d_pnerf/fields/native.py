@@ -1,48 +1,49 @@
-"""The fused CPU hash-grid kernel (hashgrid_kernel.cpp): compiled at first use, loaded with ctypes.
+"""The hash-grid encoding's fused CPU kernel, a torch custom operator built on the machine at first use.
 
-The kernel is plain C++ with OpenMP and a C ABI, so it needs a C++ compiler (g++ or clang, with
-OpenMP) and nothing else: no build step at install time, no torch headers. It is compiled once
-per source version and machine into ``$XDG_CACHE_HOME/open3d_pnerf`` (``~/.cache`` by default)
-and reused from there. Without a compiler, or with ``PNERF_NATIVE=0`` in the environment, or on
-a non-CPU device, :class:`~open3d_pnerf.fields.encodings.HashGridEncoding` uses its pure-PyTorch
-path; a warning says so once.
+``hashgrid_kernel.cpp`` (package data) defines the operators ``open3d_pnerf::hashgrid_encode`` and
+``open3d_pnerf::hashgrid_encode_backward``. :func:`available` builds it once per source, compiler
+flags, CPU, torch and Python version with ``torch.utils.cpp_extension`` (ninja and the machine's
+C++ compiler with OpenMP; ``-march=native``) in a build directory under
+``$XDG_CACHE_HOME/open3d_pnerf`` (``~/.cache`` by default), guarded by cpp_extension's file lock so
+that ranks starting together build it once, and afterwards loads the built library from there. This
+module pairs the operators in an autograd formula and gives them fake (shape-only) versions.
+
+Anything that stops the kernel (no compiler, a cache directory that cannot be written, a failed
+compile, a library that does not load, e.g. without the OpenMP runtime) makes :func:`available`
+False and :func:`unavailable_reason` say why; :class:`~open3d_pnerf.fields.HashGridEncoding` then
+runs its pure-PyTorch path after one warning naming the cause. ``PNERF_NATIVE=0`` in the
+environment turns the kernel off (no warning).
 """
 
 from __future__ import annotations
 
-import ctypes
+import contextlib
 import hashlib
 import os
 import platform
 import shutil
-import subprocess
 import sys
-import sysconfig
-import tempfile
+import time
 import warnings
 from functools import lru_cache
 from pathlib import Path
 
 import torch
 
+NAME = "open3d_pnerf_hashgrid"
 SOURCE = Path(__file__).with_name("hashgrid_kernel.cpp")
+FLAGS = ("-O3", "-march=native", "-fopenmp")
 MAX_LEVELS = 32  # kMaxLevels of the kernel
-FLAGS = ("-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-std=c++17")
+OFF = "PNERF_NATIVE=0 is set"
+STALE_LOCK_S = 600  # a build's lock file older than this was left by a killed build (a build takes ~10-60 s)
 
 
-def _compiler() -> str | None:
-    for name in (os.environ.get("CXX"), sysconfig.get_config_var("CXX"), "c++", "g++", "clang++"):
-        if name and shutil.which(name.split()[0]):
-            return name.split()[0]
-    return None
-
-
-def _cache_dir() -> Path:
+def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "open3d_pnerf"
 
 
 def _cpu_id() -> str:
-    """What -march=native depends on: the CPU's model and flags (so a shared home on other CPUs recompiles)."""
+    """What -march=native depends on: the CPU's model and flags (a home shared by other CPUs rebuilds)."""
     try:
         info = Path("/proc/cpuinfo").read_text()
         return next((ln for ln in info.splitlines() if ln.startswith("flags")), "") + platform.processor()
@@ -50,114 +51,110 @@ def _cpu_id() -> str:
         return platform.machine() + platform.processor()
 
 
+def build_directory() -> Path:
+    """Where this source is built for this compiler, CPU, torch and Python."""
+    key = " ".join((os.environ.get("CXX", "c++"), *FLAGS, _cpu_id(), torch.__version__, sys.version))
+    return cache_dir() / f"hashgrid-{hashlib.sha256(SOURCE.read_bytes() + key.encode()).hexdigest()[:16]}"
+
+
+@contextlib.contextmanager
+def _ninja_on_path():
+    """cpp_extension runs `ninja` from PATH: add the ninja package's when none is there (a virtual
+    environment that is not activated)."""
+    path = os.environ.get("PATH", "")
+    if shutil.which("ninja") is None:
+        import ninja
+
+        os.environ["PATH"] = os.pathsep.join(p for p in (ninja.BIN_DIR, path) if p)
+    try:
+        yield
+    finally:
+        os.environ["PATH"] = path
+
+
+def _build_and_load() -> None:
+    """Build the kernel (if not built yet) and load it; raises with the cause when it cannot."""
+    from torch.utils import cpp_extension
+
+    if not SOURCE.is_file():
+        raise RuntimeError(f"its source {SOURCE} is missing from the installed package")
+    folder = build_directory()
+    built, lock = folder / f"{NAME}.so", folder / "lock"
+    if lock.exists() and time.time() - lock.stat().st_mtime > STALE_LOCK_S:
+        lock.unlink()  # left by a build that was killed: cpp_extension would wait for it forever
+    if built.is_file() and not lock.exists():  # built before (a read-only cache still loads)
+        torch.ops.load_library(str(built))
+        return
+    compiler = os.environ.get("CXX", "c++")
+    if shutil.which(compiler) is None:
+        raise RuntimeError(f"no C++ compiler found ({compiler!r} is not on PATH; install g++, or set CXX)")
+    folder.mkdir(parents=True, exist_ok=True)
+    with _ninja_on_path():
+        cpp_extension.load(NAME, [str(SOURCE)], extra_cflags=list(FLAGS), extra_ldflags=["-fopenmp"],
+                           build_directory=str(folder), is_python_module=False, verbose=False)
+
+
 @lru_cache(maxsize=None)
-def library() -> ctypes.CDLL | None:
-    """The loaded kernel library, compiling it first if needed; None (with one warning) if it
-    cannot be built here or PNERF_NATIVE=0."""
+def unavailable_reason() -> str | None:
+    """None if the kernel is loaded (building it first if needed), else why it cannot run here."""
     if os.environ.get("PNERF_NATIVE", "1") == "0":
-        return None
-    compiler = _compiler()
-    if compiler is None:
-        warnings.warn("open3d_pnerf: no C++ compiler found, so the hash grid runs its pure-PyTorch path (slower); "
-                      "install g++ for the fused kernel", RuntimeWarning, stacklevel=3)
-        return None
-    key = hashlib.sha256(SOURCE.read_bytes() + " ".join((compiler, *FLAGS, _cpu_id())).encode()).hexdigest()[:16]
-    target = _cache_dir() / f"hashgrid_kernel-{key}.so"
-    if not target.is_file():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:  # compile beside, rename: safe with several ranks
-            built = Path(tmp) / target.name
-            run = subprocess.run([compiler, *FLAGS, str(SOURCE), "-o", str(built)], capture_output=True, text=True)
-            if run.returncode != 0:
-                warnings.warn(f"open3d_pnerf: compiling the hash-grid kernel failed ({run.stderr.strip()[:300]}); "
-                              "using the pure-PyTorch path (slower)", RuntimeWarning, stacklevel=3)
-                return None
-            os.replace(built, target)
-    lib = ctypes.CDLL(str(target))
-    pointer, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.hashgrid_forward.argtypes = [pointer, i64, i32, pointer, pointer, pointer, i64, i32, pointer, i32]
-    lib.hashgrid_backward.argtypes = [pointer, i64, i32, pointer, pointer, pointer, i64, i32, pointer, pointer, pointer,
-                                      i32]
-    return lib
+        return OFF
+    try:
+        _build_and_load()
+    except Exception as exc:  # compiler, ninja, file system and loader errors alike: the kernel is optional
+        message = " ".join(str(exc).split())
+        if len(message) > 600:  # a compiler's output: its command line first, the error last
+            message = f"{message[:200]} ... {message[-400:]}"
+        return f"{type(exc).__name__}: {message}"
+    _register_autograd()
+    return None
 
 
 def available() -> bool:
-    """Whether the fused kernel can run here."""
-    return library() is not None
+    """Whether the fused kernel runs here (built and loaded on the first call)."""
+    return unavailable_reason() is None
 
 
-class HashGridKernel(torch.autograd.Function):
-    """out (B, L * F) of points x (B, 3) in [0, 1] over the levels' parameters (CPU float32).
+@lru_cache(maxsize=None)
+def warn_fallback() -> None:
+    """Say once per process that the hash grid runs its pure-PyTorch path, and why."""
+    reason = unavailable_reason()
+    if reason is not None and reason != OFF:
+        warnings.warn(f"open3d_pnerf: the hash-grid kernel cannot run here ({reason}); the hash grid runs its "
+                      "pure-PyTorch path instead (slower)", RuntimeWarning, stacklevel=4)
 
-    spec: (resolutions (L,) int32 tensor, dense flags (L,) int32 tensor: the dense levels come
-    first, table_size, features); params: the dense levels' (1, F, R, R, R) volumes, then (when
-    there are hashed levels) the hashed table (L_h * table_size, F). Gradients: for the
-    parameters, and for x when it requires one (pose refinement).
-    """
 
-    @staticmethod
-    def forward(ctx, spec, x: torch.Tensor, *params: torch.Tensor) -> torch.Tensor:
-        resolutions, dense, table_size, features = spec
-        x = x.contiguous()
-        out = torch.empty(len(x), len(resolutions) * features, dtype=torch.float32)
-        library().hashgrid_forward(x.data_ptr(), len(x), len(resolutions), resolutions.data_ptr(), dense.data_ptr(),
-                                   _level_pointers(params, spec), table_size, features, out.data_ptr(),
-                                   torch.get_num_threads())
-        ctx.spec, ctx.parameters = spec, params
+def hashgrid_encode(x: torch.Tensor, params: list[torch.Tensor], resolutions: list[int], dense: list[int],
+                    table_size: int, features: int, known: torch.Tensor | None = None) -> torch.Tensor:
+    """(n, L * F) encoding of points x (n, 3) in [0, 1] (see hashgrid_kernel.cpp), differentiable in
+    x and params; known (m, L * F): the encoding of x's last m rows, computed before (its values are
+    copied; it carries no gradient, the backward covers every row). Needs :func:`available`."""
+    return torch.ops.open3d_pnerf.hashgrid_encode(x, params, resolutions, dense, table_size, features, known)
+
+
+def _register_autograd() -> None:
+    """The autograd formula of hashgrid_encode (its backward operator) and both operators' fake versions."""
+    encode, backward = "open3d_pnerf::hashgrid_encode", "open3d_pnerf::hashgrid_encode_backward"
+
+    def setup_context(ctx, inputs, output):
+        x, params, *spec, _known = inputs
         ctx.save_for_backward(x, *params)
-        return out
+        ctx.spec = spec
 
-    @staticmethod
-    def backward(ctx, grad_out: torch.Tensor):
-        resolutions, dense, table_size, features = ctx.spec
+    def gradient(ctx, grad_out):
         x, *params = ctx.saved_tensors
-        grads = [_accumulator(p, original) for p, original in zip(params, ctx.parameters)]
-        grad_x = torch.empty_like(x) if ctx.needs_input_grad[1] else None
-        library().hashgrid_backward(x.data_ptr(), len(x), len(resolutions), resolutions.data_ptr(), dense.data_ptr(),
-                                    _level_pointers(params, ctx.spec), table_size, features,
-                                    grad_out.contiguous().data_ptr(), _level_pointers(grads, ctx.spec),
-                                    None if grad_x is None else grad_x.data_ptr(), torch.get_num_threads())
-        # leaf parameters got their gradient accumulated in .grad directly (see _accumulator)
-        return (None, grad_x, *(None if g is original.grad else g for g, original in zip(grads, ctx.parameters)))
+        x_needs_grad = ctx.needs_input_grad[0]
+        grad_x, grad_params = torch.ops.open3d_pnerf.hashgrid_encode_backward(grad_out, x, params, *ctx.spec,
+                                                                              x_needs_grad)
+        # none for the other inputs (the dispatcher leaves out `known` when it is None)
+        return (grad_x if x_needs_grad else None), grad_params, *[None] * (len(ctx.needs_input_grad) - 2)
 
+    torch.library.register_autograd(encode, gradient, setup_context=setup_context)
 
-def _accumulator(saved: torch.Tensor, parameter: torch.Tensor) -> torch.Tensor:
-    """Where the kernel adds a parameter's gradient. Inside ``loss.backward()``, for a leaf
-    parameter without gradient hooks, its .grad itself: the existing one (autograd's
-    accumulation), or, when it has none, a buffer kept on the parameter from the last step,
-    zeroed, which becomes its .grad. The 21 MB table gradient is then not allocated afresh every
-    step (each fresh allocation page-faults: that cost more than the kernel). A buffer someone
-    still holds (the refcount says so) is not reused. Otherwise (``torch.autograd.grad``, which
-    leaves .grad alone, or a hooked parameter) a new zeroed tensor that autograd receives."""
-    if not (parameter.is_leaf and parameter.requires_grad) or not _accumulates_here(parameter):
-        return torch.zeros_like(saved)
-    if parameter.grad is None:
-        buffer = getattr(parameter, "_pnerf_grad_buffer", None)
-        # references: the attribute, `buffer`, getrefcount's argument; more means it is held elsewhere
-        if buffer is None or buffer.shape != parameter.shape or sys.getrefcount(buffer) > 3:
-            buffer = parameter._pnerf_grad_buffer = torch.empty_like(parameter)
-        parameter.grad = buffer.zero_()
-    return parameter.grad
+    @torch.library.register_fake(encode)
+    def _(x, params, resolutions, dense, table_size, features, known=None):
+        return x.new_empty(x.shape[0], len(resolutions) * features)
 
-
-def _accumulates_here(parameter: torch.Tensor) -> bool:
-    """Whether the running backward pass will accumulate into parameter.grad (its AccumulateGrad
-    node runs: ``backward()``, not ``autograd.grad``) with no hook that would see the gradient."""
-    if parameter._backward_hooks or getattr(parameter, "_post_accumulate_grad_hooks", None):
-        return False
-    try:
-        return torch._C._will_engine_execute_node(torch.autograd.graph.get_gradient_edge(parameter).node)
-    except RuntimeError:  # torch refuses the question for a leaf inside autograd.grad, which never accumulates
-        return False
-
-
-def _level_pointers(params, spec):
-    """A C array of each level's data pointer: a dense level's volume, or a hashed level's rows of the table."""
-    _, dense, table_size, features = spec
-    n_dense = int(dense.sum())
-    pointers = [p.data_ptr() for p in params[:n_dense]]
-    if len(params) > n_dense:
-        table = params[n_dense]
-        step = table_size * features * table.element_size()
-        pointers += [table.data_ptr() + j * step for j in range(len(dense) - n_dense)]
-    return (ctypes.c_void_p * len(pointers))(*pointers)
+    @torch.library.register_fake(backward)
+    def _(grad_out, x, params, resolutions, dense, table_size, features, x_needs_grad):
+        return x.new_empty(x.shape[0] if x_needs_grad else 0, 3), [torch.empty_like(p) for p in params]

@@ -72,85 +72,65 @@ def render_rays(
     generator: torch.Generator | BatchShare | None = None,
     jitter: bool = True,
     with_coarse: bool = False,
+    color_min_weight: float = 0.0,
 ) -> tuple[RayRender, RayRender | None]:
     """Render rays with a coarse (stratified) and a fine pass; returns (fine, coarse or None).
 
-    The coarse samples' densities place the importance samples; the fine render composites
-    the union of coarse, importance and guided samples, with the field's geometry evaluated
-    once per sample (the coarse ones' are reused) and colour at every sample. The coarse
-    rendering (with_coarse) reuses the fine pass's values at the coarse samples, so the paper's
-    coarse loss terms cost no extra field evaluations. target_mean / target_sigma: (R,)
-    ray-distance Gaussian targets, NaN where none; rays with a target get n_guided samples in
-    mean +- 3 sigma, the others extra importance samples. generator: the random numbers'
-    source; a :class:`BatchShare` renders rows of a larger batch exactly as that batch would.
+    The coarse samples' densities, computed without gradient, place the fine samples: importance
+    samples drawn from them and, on rays with a depth target (target_mean / target_sigma (R,)
+    ray-distance Gaussians, NaN where none), n_guided samples in mean +- 3 sigma (the other rays
+    get extra importance samples). Then every sample, fine and coarse, is encoded in one call of
+    the field (the coarse encodings are reused), so that a training step writes the grid's
+    gradient once, and the field's heads run on each set. The fine render composites the union
+    of the samples; with_coarse: also the coarse samples alone, from the same values (the paper's
+    coarse loss terms, at no extra field evaluation). Colour is evaluated at every sample, or,
+    with color_min_weight > 0 (renders for viewing), only where a sample's weight reaches it (a
+    sample below adds less than that to the pixel; S * color_min_weight in all). generator: the
+    random numbers' source (a :class:`BatchShare` renders rows of a larger batch exactly as that
+    batch would); jitter=False: samples in the middle of their slices (deterministic renders).
     """
     with record_function("pnerf.coarse_pass"):
         t_c = stratified(rays, sampling.n_coarse, generator, jitter)
         e_c = bin_edges(t_c, rays.near, rays.far)
-        sigma_c, features_c = field.geometry(_points(rays, t_c))
-        sigma_c = sigma_c.view_as(t_c)
+        x_c = _points(rays, t_c)
+        with torch.no_grad():
+            encoded_c = field.encode(x_c)
+            w_c = render_weights(field.geometry(x_c, encoded_c)[0].view_as(t_c), e_c)
     with record_function("pnerf.resample"):
-        n_extra = sampling.n_guided
-        w_c = render_weights(sigma_c.detach(), e_c)
-        t_f = importance(e_c, w_c, sampling.n_fine + n_extra, generator, jitter)
-        if target_mean is not None and n_extra > 0:
+        t_f = importance(e_c, w_c, sampling.n_fine + sampling.n_guided, generator, jitter)
+        if target_mean is not None and sampling.n_guided > 0:
             # rays with a target: n_fine importance samples drawn on their own over the whole
             # coarse PDF (not the front part of the longer draw), then the guided ones
             has = torch.isfinite(target_mean)
-            guided = depth_guided(
-                rays, torch.nan_to_num(target_mean), torch.nan_to_num(target_sigma, nan=1.0), n_extra, generator
-            )
+            guided = depth_guided(rays, torch.nan_to_num(target_mean), torch.nan_to_num(target_sigma, nan=1.0),
+                                  sampling.n_guided, generator)
             t_own = torch.cat([importance(e_c, w_c, sampling.n_fine, generator, jitter), guided], 1)
             t_f = torch.where(has[:, None], t_own, t_f)
     with record_function("pnerf.fine_field"):
-        t, order, sigma, features = _merged_geometry(field, rays, t_c, sigma_c, features_c, t_f)
-        dirs = rays.directions[:, None, :].expand(*t.shape, 3).reshape(-1, 3)
-        rgb = field.color(features.reshape(-1, features.shape[-1]), dirs).view(*t.shape, 3)
+        x_f = _points(rays, t_f)
+        # fine samples first: the grid's gradient then sums its terms in the order it always has
+        encoded = field.encode(torch.cat([x_f, x_c]), known=encoded_c).split([len(x_f), len(x_c)])
+        (sigma_f, features_f), (sigma_c, features_c) = (field.geometry(x, e) for x, e in zip((x_f, x_c), encoded))
+        t, order = merge(t_c, t_f)
+        sigma = torch.cat([sigma_c.view_as(t_c), sigma_f.view_as(t_f)], 1).gather(1, order)
+        features = torch.cat([features_c.view(*t_c.shape, -1), features_f.view(*t_f.shape, -1)], 1)
+        features = features.gather(1, order[..., None].expand(-1, -1, features.shape[-1]))
+        edges = bin_edges(t, rays.near, rays.far)
+        if color_min_weight > 0:
+            rows = (render_weights(sigma, edges) >= color_min_weight).nonzero(as_tuple=True)
+            rgb = torch.zeros(*t.shape, 3, device=t.device)
+            rgb[rows] = field.color(features[rows], rays.directions[rows[0]])
+        else:
+            dirs = rays.directions[:, None, :].expand(*t.shape, 3).reshape(-1, 3)
+            rgb = field.color(features.reshape(-1, features.shape[-1]), dirs).view(*t.shape, 3)
     with record_function("pnerf.composite"):
-        fine = composite(t, bin_edges(t, rays.near, rays.far), sigma, rgb)
+        fine = composite(t, edges, sigma, rgb)
         coarse = None
         if with_coarse:
             is_coarse = order < sampling.n_coarse
             shape = t_c.shape
             coarse = composite(t_c, e_c, sigma[is_coarse].view(shape), rgb[is_coarse].view(*shape, 3))
     return fine, coarse
-
-
-@torch.no_grad()
-def render_rays_inference(field, rays: Rays, sampling: SamplingConfig, min_weight: float = 1e-4) -> RayRender:
-    """Render rays for viewing, evaluation and export, without gradient: the samples of
-    ``render_rays(jitter=False)`` with the guided samples drawn as importance ones (no targets
-    here); colour is evaluated only at samples whose weight reaches `min_weight`: a sample below
-    it adds less than min_weight to the pixel's colour (at most S * min_weight = 0.004 in all for
-    S = 40 samples; densities, weights, depth and opacity are untouched).
-    """
-    with record_function("pnerf.coarse_pass"):
-        t_c = stratified(rays, sampling.n_coarse, jitter=False)
-        e_c = bin_edges(t_c, rays.near, rays.far)
-        sigma_c, features_c = field.geometry(_points(rays, t_c))
-        sigma_c = sigma_c.view_as(t_c)
-    with record_function("pnerf.resample"):
-        t_f = importance(e_c, render_weights(sigma_c, e_c), sampling.n_fine + sampling.n_guided, jitter=False)
-    with record_function("pnerf.fine_field"):
-        t, _, sigma, features = _merged_geometry(field, rays, t_c, sigma_c, features_c, t_f)
-        edges = bin_edges(t, rays.near, rays.far)
-        rows = (render_weights(sigma, edges) >= min_weight).nonzero(as_tuple=True)
-        rgb = torch.zeros(*t.shape, 3, device=t.device)
-        rgb[rows] = field.color(features[rows], rays.directions[rows[0]])
-    with record_function("pnerf.composite"):
-        return composite(t, edges, sigma, rgb)
-
-
-def _merged_geometry(field, rays: Rays, t_c, sigma_c, features_c, t_f):
-    """(t, order, sigma, features) of the coarse samples t_c (densities (R, S_c) and features
-    already evaluated) and the fine ones t_f (evaluated here) merged in order along each ray:
-    t (R, S) sorted, order (R, S) each column's original index (coarse ones first), sigma (R, S),
-    features (R, S, C)."""
-    sigma_f, features_f = field.geometry(_points(rays, t_f))
-    t, order = merge(t_c, t_f)
-    sigma = torch.cat([sigma_c, sigma_f.view_as(t_f)], 1).gather(1, order)
-    features = torch.cat([features_c.view(*t_c.shape, -1), features_f.view(*t_f.shape, -1)], 1)
-    return t, order, sigma, features.gather(1, order[..., None].expand(-1, -1, features.shape[-1]))
 
 
 def _points(rays: Rays, t: torch.Tensor) -> torch.Tensor:
