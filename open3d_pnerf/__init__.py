@@ -55,10 +55,3 @@ __all__ = [
     "tsdf_fusion",
 ]
 
-
-def __getattr__(name: str):
-    from . import losses
-
-    if name in losses.RENAMED:
-        return losses.renamed(name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -8,9 +8,6 @@ its own ``build()``), ``sampling``, ``objective``, ``optimizer``, ``targets``, `
     ReconstructionConfig.preset("fast", holdout_every=4, **{"sampling.n_coarse": 32})
     config.replace(**{"hashgrid.levels": 12})
 
-Names from before the sub-configs (``n_coarse``, ``hash_levels``, ``gains``, ...) still work,
-with a DeprecationWarning, and saved configs in the old flat form load unchanged.
-
 This module is longer than most on purpose: it is the one reference of every setting, each
 with its docstring, range check and default.
 """
@@ -18,7 +15,6 @@ with its docstring, range check and default.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from typing import Any, Callable
 
 import torch
@@ -194,13 +190,9 @@ class TrackingConfig:
 
     loop_closure: bool = True
     """Register keyframes that see the same place and optimise the pose graph."""
-    point_noise_m: float | None = None
-    """None: each registration's covariance from its own residuals. A number: the previous model,
-    Open3D's information scaled by this per-correspondence noise (m; deprecated)."""
 
     def checks(self) -> list[Check]:
-        return [("loop_closure", _flag, "True or False"),
-                ("point_noise_m", lambda v: v is None or (_number(v) and v > 0), "None or a number > 0 (metres)")]
+        return [("loop_closure", _flag, "True or False")]
 
 
 @dataclasses.dataclass
@@ -275,25 +267,6 @@ SUB_CONFIGS = {"hashgrid": HashGridConfig, "grid": GridConfig, "vanilla": Vanill
                "tracking": TrackingConfig, "export": ExportConfig, "runtime": RuntimeConfig}
 NESTED = {("objective", "weights"): LossWeights}  # dataclasses inside sub-configs
 TUPLES = {("grid", "resolutions")}  # JSON gives lists
-
-# flat names of the configuration before the sub-configs -> their dotted names now
-LEGACY_NAMES = {
-    "gains": "objective.weights", "depth_gain_final_factor": "objective.depth_weight_final_factor",
-    "coarse_loss": "objective.coarse_terms", "pose_prior_weight": "objective.pose_prior_weight",
-    "n_coarse": "sampling.n_coarse", "n_fine": "sampling.n_fine", "n_guided": "sampling.n_guided",
-    "depth_guided_sampling": "sampling.depth_guided", "rays_per_batch": "optimizer.rays_per_batch",
-    "lr": "optimizer.lr", "lr_final_factor": "optimizer.lr_final_factor", "adam_beta2": "optimizer.adam_beta2",
-    "pose_lr": "optimizer.pose_lr", "grid_resolutions": "grid.resolutions", "grid_features": "grid.features",
-    "hash_levels": "hashgrid.levels", "hash_log2_table_size": "hashgrid.log2_table_size",
-    "hash_max_resolution": "hashgrid.max_resolution", "eval_every": "runtime.eval_every",
-    "checkpoint_every": "runtime.checkpoint_every", "cache_frames": "runtime.cache_frames",
-    "dist_backend": "runtime.dist_backend", "dist_timeout_s": "runtime.dist_timeout_s",
-    "point_noise_m": "tracking.point_noise_m", "depth_sigma_relative": "targets.depth_sigma_relative",
-    "calibrate_depth_sigma": "export.calibrate_depth_sigma", "export_scale": "export.scale",
-    "export_max_views": "export.max_views", "mesh_voxel_size": "export.mesh_voxel_size",
-    "max_point_std": "export.max_point_std", "min_opacity": "export.min_opacity",
-}
-
 
 @dataclasses.dataclass
 class ReconstructionConfig:
@@ -372,17 +345,11 @@ class ReconstructionConfig:
     def from_dict(cls, values: dict[str, Any]) -> "ReconstructionConfig":
         """Build from a dict, applied in order over the defaults: nested sub-config dicts (as
         to_dict() and saved run_config.json files have them), dotted names
-        ("sampling.n_coarse"), top-level fields, or the flat names of the configuration before
-        the sub-configs (DeprecationWarning). Unknown names raise ConfigError."""
+        ("sampling.n_coarse") and top-level fields. Unknown names raise ConfigError."""
         if not isinstance(values, dict):
             raise ConfigError(f"a config must be a dict of settings, got {type(values).__name__}")
         tree = dataclasses.asdict(cls())
-        legacy = {key: LEGACY_NAMES[key] for key in values if key in LEGACY_NAMES}
-        if legacy:
-            names = ", ".join(f"{old!r} is deprecated: use {new!r}" for old, new in legacy.items())
-            warnings.warn(f"config field {names}", DeprecationWarning, stacklevel=3)
         for key, value in values.items():
-            key = legacy.get(key, key)
             path = key.split(".")
             if len(path) == 1 and key in SUB_CONFIGS and isinstance(value, dict):
                 for sub_key, sub_value in value.items():
@@ -400,16 +367,6 @@ class ReconstructionConfig:
     def replace(self, **changes) -> "ReconstructionConfig":
         """A validated copy with some fields changed (dotted names for sub-config fields)."""
         return self.from_dict({**self.to_dict(), **changes})
-
-    def __getattr__(self, name: str):
-        if name in LEGACY_NAMES:  # only reached when normal lookup fails
-            warnings.warn(f"config.{name} is deprecated: use config.{LEGACY_NAMES[name]}", DeprecationWarning,
-                          stacklevel=2)
-            value = self
-            for part in LEGACY_NAMES[name].split("."):
-                value = getattr(value, part)
-            return value
-        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     # -- derived -----------------------------------------------------------------------------
     @property

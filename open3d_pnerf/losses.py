@@ -18,7 +18,6 @@ holds the library's three by name.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 
 import torch
 
@@ -173,20 +172,3 @@ def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights
     terms = {k: torch.as_tensor(v) for k, v in terms.items()}
     terms["loss"] = total
     return terms
-
-
-RENAMED = {"LossGains": "LossWeights"}  # old name -> new name ("gains" are the cameras' exposure gains)
-
-
-def renamed(name: str):
-    """The object behind a renamed name, with a DeprecationWarning pointing at the caller of
-    the module's __getattr__."""
-    warnings.warn(f"{name} is deprecated: use {RENAMED[name]} (loss weights; 'gains' are camera exposure)",
-                  DeprecationWarning, stacklevel=3)
-    return globals()[RENAMED[name]]
-
-
-def __getattr__(name: str):
-    if name in RENAMED:
-        return renamed(name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -60,8 +60,7 @@ def training_frames(sequence: RGBDSequence, indices: np.ndarray, config: Reconst
 # -- poses ---------------------------------------------------------------------------------------
 def track_sequence(sequence: RGBDSequence, config: ReconstructionConfig) -> Trajectory:
     """open3d_pnerf.track with the config's tracking settings: the one place that decides them."""
-    return track(sequence, loop_closure=config.tracking.loop_closure, point_noise_m=config.tracking.point_noise_m,
-                 progress=config.progress)
+    return track(sequence, loop_closure=config.tracking.loop_closure, progress=config.progress)
 
 
 def given_poses(poses, covariances, n: int) -> tuple[np.ndarray, np.ndarray]:

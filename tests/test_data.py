@@ -354,7 +354,7 @@ def test_override_image_scale(sample):
     # area-averaged colour: mean colour preserved
     assert np.abs(frame.color.mean((0, 1)) - sample[0].color.mean((0, 1))).max() < 1.0
     np.testing.assert_array_equal(seq.gt_poses, sample.gt_poses)
-    # rescaled() on the sequence gives the same
+    # at_scale() on the sequence gives the same
     np.testing.assert_array_equal(sample.at_scale(0.5)[0].depth, frame.depth)
 
 

@@ -659,12 +659,10 @@ def test_export_renders_at_most_export_max_views(recon, monkeypatch):
     np.testing.assert_allclose(np.stack(calls[:3]), recon.poses[train[[0, len(train) // 2, -1]]])
 
 
-def test_a_folder_saved_before_the_sub_configs_loads_and_renders_as_it_did():
-    """tests/data/saved_format1 was written by the library before its config had sub-configs
-    (a flat config in reconstruction.json), with a render of frame 1 made by that version."""
+def test_a_saved_folder_loads_and_renders_as_the_version_that_wrote_it_did():
+    """tests/data/saved_format1 was written by an earlier version, with its render of frame 1."""
     folder = Path(__file__).parent / "data" / "saved_format1"
-    with pytest.warns(DeprecationWarning, match="grid_resolutions"):
-        recon = Reconstruction.load(folder)
+    recon = Reconstruction.load(folder)
     assert recon.config.field == "grid" and recon.config.grid.resolutions == (8, 16)
     assert recon.config.sampling.n_fine == 16 and recon.config.max_steps == 60  # the old "test" preset
     expected = np.load(folder / "expected_render_frame1.npz")

@@ -97,10 +97,16 @@ def test_edge_jacobians_match_finite_differences():
         np.testing.assert_allclose(fd_t, J_t[:, k], atol=1e-6)
 
 
-def test_single_edge_covariance_is_scaled_inverse_information():
+def scaled_information(graph, s: float) -> list[np.ndarray]:
+    """Each edge's information for a correspondence noise of s metres (Open3D's G^T G / s^2)."""
+    return [np.asarray(e.information) / s**2 for e in graph.edges]
+
+
+def test_single_edge_covariance_is_the_inverse_information():
     graph = chain_graph(2)
     info = np.asarray(graph.edges[0].information)
-    cov = pose_graph_covariances(graph, point_noise_m=0.01)
+    np.testing.assert_allclose(pose_graph_covariances(graph)[1], np.linalg.inv(info), rtol=1e-8, atol=1e-14)
+    cov = pose_graph_covariances(graph, information=scaled_information(graph, 0.01))
     np.testing.assert_allclose(cov[0], 0.0)
     np.testing.assert_allclose(cov[1], 0.01**2 * np.linalg.inv(info), rtol=1e-8, atol=1e-14)
 
@@ -128,12 +134,12 @@ def test_covariances_match_dense_reference_with_finite_difference_jacobians():
     inv = np.zeros_like(H)
     inv[np.ix_(keep, keep)] = np.linalg.inv(H[np.ix_(keep, keep)])
     expected = np.stack([s**2 * inv[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(n)])
-    got = pose_graph_covariances(graph, point_noise_m=s, reference=reference)
+    got = pose_graph_covariances(graph, reference=reference, information=scaled_information(graph, s))
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-12)
 
 
 def test_covariances_grow_along_chain_and_are_spd():
-    cov = pose_graph_covariances(chain_graph(8), point_noise_m=0.01)
+    cov = pose_graph_covariances(chain_graph(8))
     assert cov.shape == (8, 6, 6) and cov.dtype == np.float64
     np.testing.assert_allclose(cov[0], 0.0)
     traces = np.trace(cov, axis1=1, axis2=2)
@@ -145,9 +151,9 @@ def test_covariances_grow_along_chain_and_are_spd():
 
 def test_loop_closure_shrinks_covariances():
     graph = chain_graph(8)
-    before = pose_graph_covariances(graph, point_noise_m=0.01)
+    before = pose_graph_covariances(graph)
     add_loop(graph, 0, 7)
-    after = pose_graph_covariances(graph, point_noise_m=0.01)
+    after = pose_graph_covariances(graph)
     tr_before, tr_after = np.trace(before, axis1=1, axis2=2), np.trace(after, axis1=1, axis2=2)
     assert tr_after[7] < 0.5 * tr_before[7]
     assert np.all(tr_after[1:] <= tr_before[1:] * (1 + 1e-9))
@@ -159,11 +165,11 @@ def test_disconnected_graph_and_bad_arguments_raise():
     graph = chain_graph(3)
     graph.nodes.append(registration.PoseGraphNode(np.eye(4)))
     with pytest.raises(InputError, match=r"nodes \[3\]"):
-        pose_graph_covariances(graph, point_noise_m=0.01)
-    with pytest.raises(InputError, match="point_noise_m"):
-        pose_graph_covariances(chain_graph(3), point_noise_m=0.0)
+        pose_graph_covariances(graph)
+    with pytest.raises(InputError, match="information has 1 matrices for 2 edges"):
+        pose_graph_covariances(chain_graph(3), information=[np.eye(6)])
     with pytest.raises(InputError, match="reference"):
-        pose_graph_covariances(chain_graph(3), point_noise_m=0.01, reference=5)
+        pose_graph_covariances(chain_graph(3), reference=5)
 
 
 # -- ATE ------------------------------------------------------------------------------------

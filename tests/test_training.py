@@ -132,21 +132,6 @@ def test_nested_dicts_dotted_names_and_field_configs():
     assert cfg.replace(**{"objective.weights.density": 0.2}).objective.weights == LossWeights(density=0.2)
 
 
-def test_names_from_before_the_sub_configs_still_work_with_a_warning():
-    with pytest.warns(DeprecationWarning, match="'n_coarse' is deprecated: use 'sampling.n_coarse'"):
-        cfg = ReconstructionConfig.preset("test", n_coarse=24, hash_levels=4, gains={"density": 0.1})
-    assert cfg.sampling.n_coarse == 24 and cfg.hashgrid.levels == 4 and cfg.objective.weights.density == 0.1
-    with pytest.warns(DeprecationWarning, match="config.rays_per_batch is deprecated"):
-        assert cfg.rays_per_batch == cfg.optimizer.rays_per_batch
-    with pytest.warns(DeprecationWarning):  # a config saved in the old flat form loads
-        old = ReconstructionConfig.from_dict({"loss": "dsnerf", "grid_resolutions": [8, 16], "point_noise_m": 1.5,
-                                              "gains": {"color": 1.0, "density": 0.3, "depth": 0.5, "dsnerf": 0.05}})
-    assert old.grid.resolutions == (8, 16) and old.tracking.point_noise_m == 1.5 and old.loss == "dsnerf"
-    with pytest.warns(DeprecationWarning, match="LossGains is deprecated: use LossWeights") as caught:
-        from open3d_pnerf import LossGains
-    assert LossGains is LossWeights and caught[0].filename == __file__
-
-
 def dotted(obj, name: str):
     for part in name.split("."):
         obj = getattr(obj, part)

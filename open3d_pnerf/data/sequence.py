@@ -8,7 +8,6 @@ Inside the library depth is z-depth in metres (float32, 0 = invalid) and colour 
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from typing import Sequence
 
 import cv2
@@ -21,7 +20,6 @@ from .images import FrameReader, constant_reader, depth_in_metres
 from .sfm import SfMData
 
 MEDIAN_DEPTH_LIMIT = 20.0  # metres: an indoor RGB-D median beyond this means a wrong depth scale
-_SFM_ATTRIBUTES = ("poses", "covariances", "points", "bounds", "scale")  # ImageSequence's, before SfMData
 
 
 @dataclasses.dataclass
@@ -124,13 +122,6 @@ class RGBDSequence:
         if self._base_sfm is None:
             return None
         return self._base_sfm.at_pixel_scale(self.intrinsic.width / self._base_intrinsic.width)
-
-    def __getattr__(self, name: str):
-        # ImageSequence's attributes from before SfMData became a part of the sequence
-        if name in _SFM_ATTRIBUTES and self.__dict__.get("_base_sfm") is not None:
-            warnings.warn(f"sequence.{name} is deprecated; use sequence.sfm.{name}", DeprecationWarning, stacklevel=2)
-            return getattr(self.sfm, name)
-        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     # -- container protocol -----------------------------------------------------------
     def __len__(self) -> int:
@@ -240,12 +231,6 @@ class RGBDSequence:
     def scaled_by(self, factor: float) -> "RGBDSequence":
         """The same frames resized by `factor` relative to this sequence's current size."""
         return self.at_scale(self.image_scale * factor)
-
-    def rescaled(self, image_scale: float) -> "RGBDSequence":
-        """Deprecated name of :meth:`at_scale` (the scale is absolute, not relative)."""
-        warnings.warn("RGBDSequence.rescaled(s) is deprecated: use at_scale(s) (absolute) or scaled_by(f) "
-                      "(relative)", DeprecationWarning, stacklevel=2)
-        return self.at_scale(image_scale)
 
     def write_nerfstudio(self, path, poses: np.ndarray | None = None, progress: bool = False):
         """Write the frames as a nerfstudio folder (``transforms.json``); see

@@ -7,11 +7,10 @@
 from .covariance import adjoint, edge_jacobians, pose_graph_covariances, pose_graph_hessian
 from .metrics import absolute_trajectory_error, consistency_of_errors, covariance_consistency, pose_errors, rigid_alignment
 from .odometry import FrameRegistration, OdometryOptions, PairResult
-from .tracker import DEFAULT_POINT_NOISE_M, track
+from .tracker import track
 from .trajectory import Edge, Trajectory
 
 __all__ = [
-    "DEFAULT_POINT_NOISE_M",
     "Edge",
     "FrameRegistration",
     "OdometryOptions",

@@ -1,9 +1,9 @@
 """Pose covariances from an Open3D pose graph: marginals of the pose-graph Hessian.
 
 Open3D returns no pose covariance. This module rebuilds the Gauss-Newton Hessian
-``H = sum_e c_e J_e^T Lambda_e J_e`` from ``pose_graph.edges``, fixes the reference node and
-reads the 6x6 diagonal blocks of ``s^2 H^-1``, where ``s`` is the per-correspondence noise
-(Open3D's information matrices are unscaled ``G^T G``; entry [5, 5] counts correspondences).
+``H = sum_e c_e J_e^T Lambda_e J_e`` from ``pose_graph.edges`` and each edge's information
+``Lambda_e`` (the inverse of the edge's covariance), fixes the reference node and reads the 6x6
+diagonal blocks of ``H^-1``.
 
 Conventions (order [rotation(3), translation(3)] throughout):
 
@@ -90,21 +90,17 @@ def pose_graph_hessian(pose_graph: o3d.pipelines.registration.PoseGraph,
 
 
 def pose_graph_covariances(
-    pose_graph: o3d.pipelines.registration.PoseGraph, point_noise_m: float = 1.0, reference: int = 0,
-    information: list[np.ndarray] | None = None,
+    pose_graph: o3d.pipelines.registration.PoseGraph, reference: int = 0, information: list[np.ndarray] | None = None,
 ) -> np.ndarray:
     """(N, 6, 6) float64 covariances of the node poses, [rotation (rad^2), translation (m^2)].
 
-    The 6x6 diagonal blocks of ``point_noise_m^2 * H^-1`` with the reference node held fixed
-    (its covariance is zero). ``H`` is :func:`pose_graph_hessian` of the edges' `information`
-    (one (6, 6) per edge, the inverse of each edge's covariance; default: Open3D's unscaled
-    matrices, which point_noise_m, the noise of one correspondence (m), then scales); the
+    The 6x6 diagonal blocks of ``H^-1`` with the reference node held fixed (its covariance is
+    zero). ``H`` is :func:`pose_graph_hessian` of the edges' `information`: one (6, 6) per edge,
+    the inverse of each edge's covariance (default: each edge's own ``information``); the
     perturbation is ``T exp(xi)`` (camera frame). Every node must be connected to the
     reference through edges, otherwise InputError names the unconnected nodes.
     """
     n = len(pose_graph.nodes)
-    if not point_noise_m > 0:
-        raise InputError(f"point_noise_m must be > 0 metres, got {point_noise_m!r}")
     if not 0 <= reference < n:
         raise InputError(f"reference must be a node index in [0, {n}), got {reference}")
     if information is not None and len(information) != len(pose_graph.edges):
@@ -132,7 +128,7 @@ def pose_graph_covariances(
         for j in range(start // 6, stop // 6):
             block = cols[6 * j : 6 * j + 6, 6 * j - start : 6 * j - start + 6]
             covariances[free[j]] = 0.5 * (block + block.T)
-    return point_noise_m**2 * covariances
+    return covariances
 
 
 def _check_connected(pose_graph, n: int, reference: int) -> None:

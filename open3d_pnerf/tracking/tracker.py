@@ -24,11 +24,6 @@ measurement. Chosen on 7-Scenes frames 150-199 with misregistration_rad (NEES pe
 closures 3.1 at 4, 1.9 at 9); the synthetic room's noise draws agree (0.92 and 1.63 at 320x240
 and 160x120)."""
 
-DEFAULT_POINT_NOISE_M = 2.0
-"""Noise of one Open3D correspondence (m) of the deprecated ``track(point_noise_m=...)`` model,
-which scaled Open3D's information ``G^T G`` by it: a constant fitted on TUM fr1/xyz that made the
-covariance shrink as 1 / (number of pixels) and did not hold on other data or resolutions."""
-
 
 def track(
     sequence: RGBDSequence,
@@ -36,7 +31,6 @@ def track(
     keyframe_every: int = 5,
     max_keyframes: int | None = 200,
     loop_closure: bool = True,
-    point_noise_m: float | None = None,
     max_depth: float = 3.0,
     device=None,
     progress: bool = True,
@@ -78,8 +72,7 @@ def track(
        it neither depends on the processing resolution nor counts correlated pixels as
        independent), plus ``odometry.misregistration_rad`` for what a real sensor's calibration
        leaves; a loop closure's is LOOP_INFLATION times larger (its images are already in the
-       chain). point_noise_m: the previous model instead, Open3D's information scaled by this
-       per-correspondence noise (m) (deprecated: a fitted constant, see DEFAULT_POINT_NOISE_M).
+       chain).
 
     sequence: an :class:`~open3d_pnerf.RGBDSequence` of at least 2 frames. max_depth: depth
     beyond this (m) is ignored. device: Open3D device for odometry (None = "CPU:0"). progress:
@@ -91,12 +84,6 @@ def track(
         raise InputError(f"keyframe_every must be an integer >= 1, got {keyframe_every!r}")
     if max_keyframes is not None and (not isinstance(max_keyframes, (int, np.integer)) or max_keyframes < 2):
         raise InputError(f"max_keyframes must be None or an integer >= 2, got {max_keyframes!r}")
-    if point_noise_m is not None:
-        if not point_noise_m > 0:
-            raise InputError(f"point_noise_m must be > 0 metres (or None), got {point_noise_m!r}")
-        warnings.warn("track(point_noise_m=...) is deprecated: covariances now come from each registration's "
-                      "residuals; the fixed per-correspondence noise is kept only for comparison",
-                      DeprecationWarning, stacklevel=2)
     run = _Run(FrameRegistration(sequence, max_depth, device), odometry)
 
     for i in tqdm(range(1, n), desc="odometry", disable=not progress, leave=False):
@@ -124,10 +111,7 @@ def track(
 
     _warn_failures(run, sequence.name)
     poses = np.stack([np.asarray(node.pose, dtype=np.float64) for node in run.graph.nodes])
-    if point_noise_m is None:
-        covariances = pose_graph_covariances(run.graph, information=run.edge_information())
-    else:
-        covariances = pose_graph_covariances(run.graph, point_noise_m)
+    covariances = pose_graph_covariances(run.graph, information=run.edge_information())
     return Trajectory(
         poses=poses,
         covariances=covariances,
