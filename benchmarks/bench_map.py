@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 from bench_suite import OUT, PATHS, SHARED, load, machine, poses_for, prepare_synthetic, run_in_processes
 
+from open3d_pnerf.config import overrides as config_overrides
+
 VIEWS = {"synthetic": 10, "synthetic_all": 0, "tum": 0, "7scenes": 0}  # training views (0 = all)
 MESH_ONLY = {"synthetic_all"}  # datasets run with pnerf only (the all-views mesh against the TSDF's)
 
@@ -55,17 +57,6 @@ def mesh_on_heldout(mesh, recon, sequence) -> dict:
         covered, sensor = covered + both.sum(), sensor + (depth > 0).sum()
     err = np.concatenate(errors)
     return {"depth_l1": float(err.mean()) if err.size else float("nan"), "coverage": float(covered / max(sensor, 1))}
-
-
-def _override(item: str) -> tuple[str, object]:
-    """'key=value' -> (key, value as JSON: a number, true/false, ... or else the string)."""
-    key, sep, value = item.partition("=")
-    if not (key and sep):
-        raise SystemExit(f"--set expects KEY=VALUE, got {item!r}")
-    try:
-        return key, json.loads(value)
-    except json.JSONDecodeError:
-        return key, value
 
 
 def export_with(recon, sequence, **export):
@@ -185,7 +176,7 @@ def main():
     ap.add_argument("--name", default="map")
     args = ap.parse_args()
     datasets, losses = args.datasets.split(","), args.losses.split(",")
-    overrides = dict(_override(item) for item in args.set)
+    overrides = config_overrides(args.set)
     missing = [d for d in datasets if not d.startswith("synthetic") and not PATHS.get(d, SHARED / "?").is_dir()]
     if missing:
         raise SystemExit(f"shared data not found for {missing} (expected under {SHARED})")

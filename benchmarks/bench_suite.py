@@ -12,7 +12,7 @@ Datasets (RGB-D ones: every 4th frame held out: 0, 4, 8, ...; training at 320x24
               on its own with a longer budget (below)
 Experiments per dataset (ground-truth poses unless said, SfM poses for fern; `--views`
 training views when sparse, default 10, evenly spaced over the non-held-out frames):
-  ablation    photometric / + density (Kd) / + density + depth (Kd, Kz) at sparse views
+  ablation    photometric / + depth PDF (Kd) / + depth PDF + depth (Kd, Kz) at sparse views
   losses      pnerf vs dsnerf vs photometric at sparse views (shares the ablation runs)
   views       pnerf and TSDF with 5, 10, 20 and all training frames (RGB-D datasets)
   poses       pnerf at sparse views with poses from our tracking instead of GT (RGB-D)

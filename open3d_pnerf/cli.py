@@ -23,7 +23,9 @@ import numpy as np
 
 from ._files import atomic_write
 from .comparison import compare_with_tsdf
-from .config import FIELD_CONFIGS, ReconstructionConfig
+from .config import ReconstructionConfig
+from .config import overrides as config_overrides
+from .fields import FIELD_CONFIGS
 from .data import load_sample, load_sequence, write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
 from .distributed import BACKENDS, DistributedContext, distributed_session
 from .errors import CheckpointError, ConfigError, DatasetError, InputError, PNeRFError, TrainingInterrupted
@@ -67,26 +69,9 @@ def _config(args):
         "runtime.dist_backend": args.dist_backend, "runtime.dist_timeout_s": args.dist_timeout,
         "refine_poses": args.refine_poses or None,
     }.items() if v is not None}
-    overrides.update(_settings(args.set or []))
+    overrides.update(config_overrides(args.set or []))
     overrides["progress"] = not args.quiet
     return ReconstructionConfig.preset(args.preset, **overrides)
-
-
-def _settings(pairs: list[str]) -> dict:
-    """--set KEY=VALUE pairs as config overrides; VALUE is read as JSON (numbers, true/false,
-    null, lists), else taken as a string."""
-    out = {}
-    for pair in pairs:
-        key, sep, text = pair.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"--set {pair!r}: expected KEY=VALUE, e.g. --set sampling.n_coarse=32")
-        try:
-            out[key] = json.loads(text)
-        except json.JSONDecodeError:
-            out[key] = text
-        if isinstance(out[key], list):
-            out[key] = tuple(out[key])
-    return out
 
 
 def _poses_for(seq, args, config, out: Path, reuse: bool = False, write_cache: bool = True):
@@ -321,7 +306,7 @@ def _add_training_options(p):
                    help="under torchrun: how long a rank waits for the others before failing (default 600)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="any config field by its dotted name, e.g. --set sampling.n_coarse=32 --set "
-                   "objective.weights.density=0.2 (repeatable; VALUE read as JSON)")
+                   "objective.weights.depth_pdf=0.2 (repeatable; VALUE read as JSON)")
 
 
 def _add_data_options(p, data=True):

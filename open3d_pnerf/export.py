@@ -10,6 +10,8 @@ takes the sigma of the nearest of those points.
 
 from __future__ import annotations
 
+import dataclasses
+
 import matplotlib
 import numpy as np
 import open3d as o3d
@@ -18,7 +20,36 @@ from scipy.spatial import cKDTree
 
 from ._files import atomic_write
 from .camera import backproject
+from .settings import FLAG, Settings, count, number, setting
 from .tsdf import TSDFVolume
+
+
+@dataclasses.dataclass
+class ExportConfig(Settings):
+    """Depth-sigma calibration and the mesh and point cloud made after training."""
+
+    calibrate_depth_sigma: bool = setting(True, FLAG)
+    """After training, fit how the model's depth spread becomes an error bar (a Student-t law
+    by maximum likelihood on training views: Reconstruction.calibrate_depth_sigma)."""
+    scale: float = setting(0.5, number(0, 1, low_open=True))
+    """Resolution of the renders used for mesh and point-cloud export, relative to training,
+    when there is no sensor depth to fuse with (image-only sequences, the model-only export)."""
+    fused_scale: float = setting(0.25, number(0, 1, low_open=True))
+    """Resolution of the renders fused with sensor depth, relative to training: the fused
+    export works at the training resolution (the sensor keeps its own pixels, the render fills
+    its holes)."""
+    max_views: int = setting(48, count(1))
+    """Render at most this many training views (evenly spaced): bounds export time and memory."""
+    mesh_voxel_size: float = setting(0.01, number(0, low_open=True, unit="metres"))
+    """Voxel size (m) of the TSDF that fuses rendered depth into the exported mesh."""
+    mesh_min_views: int = setting(1, count(1))
+    """Keep mesh surfaces seen in at least this many export views: 1 keeps all (the most
+    complete mesh); 2 drops surfaces seen once, where the sensor's noise is not averaged (more
+    accurate, with holes where only one view looked)."""
+    max_point_std: float = setting(0.1, number(0, low_open=True, unit="metres"))
+    """Exported points whose rendered depth std exceeds this (m) are dropped."""
+    min_opacity: float = setting(0.9, number(0, 1))
+    """Exported points/mesh depth need at least this accumulated opacity."""
 
 
 def point_cloud_from_renders(renders: list[dict], poses, K, min_opacity=0.9, max_std=0.05, voxel_size=0.005,

@@ -1,12 +1,13 @@
-"""Training losses as pure functions of renderings and targets (all per-ray means), and the
-loss methods built from them.
+"""Training losses as pure functions of renderings and targets (all per-ray means), the loss
+methods built from them, and the objective's settings (LossWeights, ObjectiveConfig).
 
-PNeRF: L = Kc L_color + Kd L_density + Kz L_depth, each an L1 over coarse and fine renders:
-  L_color   = |C - C*|_1
-  L_density = sum_k |p_k - q_k|, p_k = w_k / (sum w + eps) the model's depth mass in bin k,
-              q_k the target Gaussian N(mu, sigma^2)'s mass in the same bin, renormalised
-              over [near, far]; sigma is floored at half the width of the bin holding mu.
-  L_depth   = |sum_k w_k t_k - mu|
+PNeRF: L = Kc L_color + Kd L_depth_pdf + Kz L_depth, each an L1 over coarse and fine renders
+(the paper's L_density is the depth-PDF term):
+  L_color     = |C - C*|_1
+  L_depth_pdf = sum_k |p_k - q_k|, p_k = w_k / (sum w + eps) the model's depth mass in bin k,
+                q_k the target Gaussian N(mu, sigma^2)'s mass in the same bin, renormalised
+                over [near, far]; sigma is floored at half the width of the bin holding mu.
+  L_depth     = |sum_k w_k t_k - mu|
 DS-NeRF: sum_k -log(w_k + eps) exp(-(t_k - mu)^2 / (2 sigma^2)) delta_k.
 Optional with any of them: Mip-NeRF 360's distortion of the weights of every ray.
 Depth targets (mu, sigma) are ray distances in metres (z-depth times ||d||); NaN = none.
@@ -21,26 +22,44 @@ import dataclasses
 
 import torch
 
+from .settings import FLAG, Settings, number, section, setting
+
 
 @dataclasses.dataclass(frozen=True)
-class LossWeights:
+class LossWeights(Settings):
     """Weights of the loss terms (colour is in [0, 1], depths in metres)."""
 
-    color: float = 1.0
+    color: float = setting(1.0, number(0))
     """Kc: colour L1."""
-    density: float = 0.5
-    """Kd: PNeRF density-PDF L1 (per-ray mass difference, in [0, 2]); at the start of
-    training (see ObjectiveConfig.depth_weight_final_factor)."""
-    depth: float = 0.5
+    depth_pdf: float = setting(0.5, number(0))
+    """Kd: PNeRF's depth-PDF L1 (per-ray mass difference, in [0, 2]); at the start of training
+    (see ObjectiveConfig.depth_weight_final_factor)."""
+    depth: float = setting(0.5, number(0))
     """Kz: expected-depth L1, per metre of error; at the start of training."""
-    dsnerf: float = 0.05
+    dsnerf: float = setting(0.05, number(0))
     """DS-NeRF ray-distribution loss weight (loss="dsnerf" only)."""
-    distortion: float = 0.0
+    distortion: float = setting(0.0, number(0))
     """Mip-NeRF 360's distortion regulariser on every ray's weights (per metre; 0 = off), with
     any loss: pulls each ray's weights into one compact interval."""
 
 
 TERMS = tuple(f.name for f in dataclasses.fields(LossWeights))
+
+
+@dataclasses.dataclass
+class ObjectiveConfig(Settings):
+    """What training minimises besides the choice of loss."""
+
+    weights: LossWeights = section(LossWeights)
+    """Loss weights Kc, Kd, Kz (and the DS-NeRF weight)."""
+    depth_weight_final_factor: float = setting(0.01, number(0, 1, low_open=True))
+    """The depth terms' weights (Kd, Kz, and the DS-NeRF weight, so compared losses share one
+    schedule) decay exponentially over training to this fraction (1.0 = constant): geometry
+    first, colour refined late."""
+    coarse_terms: bool = setting(True, FLAG)
+    """Add the coarse-render terms (the paper's coarse + fine losses)."""
+    pose_prior_weight: float = setting(1e-3, number(0))
+    """Weight of the pose prior (mean over frames of 0.5 xi^T Sigma^-1 xi), with refine_poses."""
 
 
 def color_l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -62,7 +81,7 @@ def gaussian_bin_masses(edges: torch.Tensor, mu: torch.Tensor, sigma: torch.Tens
     return mass / (cdf[:, -1:] - cdf[:, :1]).clamp(min=1e-8)
 
 
-def density_l1(weights, edges, mu, sigma, eps: float = 1e-6) -> torch.Tensor:
+def depth_pdf_l1(weights, edges, mu, sigma, eps: float = 1e-6) -> torch.Tensor:
     """(R,) sum_k |p_k - q_k| between normalised weights and the target's bin masses."""
     p = weights / (weights.sum(-1, keepdim=True) + eps)
     q = gaussian_bin_masses(edges, mu, sigma)
@@ -110,10 +129,10 @@ class PNeRFLoss(LossMethod):
     """The paper's: depth-PDF L1 against the target Gaussian, and expected-depth L1."""
 
     name = "pnerf"
-    terms = ("density", "depth")
+    terms = ("depth_pdf", "depth")
 
     def depth_terms(self, weights, t, edges, mu, sigma):
-        return {"density": density_l1(weights, edges, mu, sigma), "depth": depth_l1(weights, t, mu)}
+        return {"depth_pdf": depth_pdf_l1(weights, edges, mu, sigma), "depth": depth_l1(weights, t, mu)}
 
 
 class DSNeRFLoss(LossMethod):

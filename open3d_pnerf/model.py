@@ -17,7 +17,6 @@ from torch import nn
 from torch.profiler import record_function
 
 from .batches import RayBatch
-from .config import ReconstructionConfig
 from .losses import LossMethod, LossWeights, loss_method, total_loss
 from .pose_refinement import PoseCorrections
 from .rendering import BatchShare, RayRender, Rays, SamplingConfig, make_rays, render_rays
@@ -123,9 +122,9 @@ class PNeRFModel(nn.Module):
         return make_rays(pose, K, u, v, self.field.aabb, depth_range=self.depth_range)
 
 
-def build_model(config: ReconstructionConfig, aabb, poses: np.ndarray | None = None, K: np.ndarray | None = None,
+def build_model(config, aabb, poses: np.ndarray | None = None, K: np.ndarray | None = None,
                 covariances: np.ndarray | None = None, depth_range=None) -> PNeRFModel:
-    """The model of a config over the scene box aabb (2, 3): the field (seeded by config.seed,
+    """The model of a ReconstructionConfig over the scene box aabb (2, 3): the field (seeded by config.seed,
     on config.device) and, given the training cameras (poses (N, 4, 4), K (3, 3), pose
     covariances (N, 6, 6)), the exposure gains and pose corrections the config asks for;
     depth_range: (2,) z-depth [near, far] of every ray, or None."""

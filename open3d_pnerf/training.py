@@ -17,19 +17,64 @@ from tqdm.auto import tqdm
 
 from ._files import atomic_write
 from .batches import RayBatcher
-from .config import ReconstructionConfig
-from .distributed import DistributedContext
+from .distributed import BACKENDS, DistributedContext
 from .errors import CheckpointError, ConfigError, TrainingError
 from .evaluation import mse_to_psnr
 from .losses import LossWeights
 from .model import PNeRFModel
 from .rendering import BatchShare
+from .settings import FLAG, Settings, count, number, one_of, setting
 
 CHECKPOINT_VERSION = 1
 
 
+@dataclasses.dataclass
+class OptimizerConfig(Settings):
+    """Adam and its schedule."""
+
+    rays_per_batch: int = setting(512, count(1))
+    """Rays per optimiser step; with several ranks, the whole batch, split between them."""
+    lr: float = setting(1e-2, number(0, low_open=True))
+    """Initial Adam learning rate."""
+    lr_final_factor: float = setting(0.05, number(0, 1, low_open=True))
+    """The learning rate decays exponentially to lr * lr_final_factor at the end."""
+    adam_beta2: float = setting(0.99, number(0, 1, high_open=True))
+    """Adam's second-moment decay (Instant-NGP's 0.99; PyTorch's 0.999 remembers the large early
+    depth-loss gradients for ~1000 steps, after the depth weights have decayed)."""
+    pose_lr: float = setting(1e-3, number(0, low_open=True))
+    """Initial learning rate of the pose corrections (rad or m per step; same decay as lr)."""
+    target_ray_share: float = setting(0.5, number(0, 1, high_open=True))
+    """Share of each batch's rays drawn among pixels with a depth target when targets are
+    sparser than that (SfM points: ~1% of the pixels); 0 = every ray uniform over the pixels.
+    DS-NeRF's setting (half its rays are depth rays); dense RGB-D targets already exceed it."""
+
+
+@dataclasses.dataclass
+class RuntimeConfig(Settings):
+    """Evaluation, checkpoints, memory and data-parallel settings."""
+
+    eval_every: int = setting(250, count(1))
+    """Steps between held-out evaluations (a fixed subset of held-out pixels)."""
+    checkpoint_every: int = setting(500, count(1))
+    """Steps between checkpoints (when a checkpoint directory is given)."""
+    cache_frames: int = setting(64, count(1))
+    """Training frames kept decoded in memory at once (long sequences rotate through)."""
+    dist_backend: str = setting("auto", one_of(BACKENDS))
+    """torch.distributed backend when launched by torchrun with several ranks: "auto" (NCCL
+    on CUDA, gloo on CPU), "gloo" or "nccl". Unused in a single process."""
+    dist_timeout_s: float = setting(600.0, number(0, low_open=True, unit="seconds"))
+    """Seconds any rank waits in a collective before raising DistributedError: a dead or hung
+    rank gives an error, not a hang. Must exceed the longest gap between ranks."""
+    bf16_mlp: bool = setting(True, FLAG)
+    """Run the fields' MLP matrix products in bfloat16 (autocast; parameters, encodings, colours
+    and densities stay float32): about twice as fast MLPs on CPUs with bf16 instructions. False:
+    all float32."""
+
+
 class Trainer:
-    """Optimises a :class:`~open3d_pnerf.model.PNeRFModel` on pixels from a :class:`RayBatcher`.
+    """Optimises a :class:`~open3d_pnerf.model.PNeRFModel` on pixels from a :class:`RayBatcher`,
+    as a ReconstructionConfig says (its optimizer, runtime and objective settings, max_steps,
+    time_budget_s, seed and progress).
 
     eval_rays: optional (Rays, rgb) of held-out pixels scored every `runtime.eval_every`
     steps. checkpoint_dir: where ``checkpoint.pt`` is written atomically (by rank 0 only).
@@ -39,7 +84,7 @@ class Trainer:
     budget and the schedule; a Ctrl-C on any rank stops every rank after the same step.
     """
 
-    def __init__(self, model: PNeRFModel, batcher: RayBatcher, config: ReconstructionConfig, eval_rays=None,
+    def __init__(self, model: PNeRFModel, batcher: RayBatcher, config, eval_rays=None,
                  checkpoint_dir: str | Path | None = None, dist: DistributedContext | None = None):
         self.model, self.batcher, self.config = model, batcher, config
         self.dist = dist or DistributedContext()
@@ -81,7 +126,7 @@ class Trainer:
         schedule for every loss compared) decayed by depth_weight_final_factor ** progress."""
         objective = self.config.objective
         w, f = objective.weights, objective.depth_weight_final_factor ** self._progress_fraction()
-        return dataclasses.replace(w, density=w.density * f, depth=w.depth * f, dsnerf=w.dsnerf * f)
+        return dataclasses.replace(w, depth_pdf=w.depth_pdf * f, depth=w.depth * f, dsnerf=w.dsnerf * f)
 
     def _done(self) -> bool:
         if self.step >= self.config.max_steps:

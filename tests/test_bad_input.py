@@ -35,7 +35,7 @@ from open3d_pnerf import (
     track,
     tsdf_fusion,
 )
-from open3d_pnerf.config import OptimizerConfig
+from open3d_pnerf.training import OptimizerConfig
 from open3d_pnerf.data import read_log_trajectory, write_log_trajectory
 from open3d_pnerf.errors import CheckpointError, ConfigError, DatasetError, InputError, PoseError
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from open3d_pnerf.config import FIELD_CONFIGS
 from open3d_pnerf.fields import (
+    FIELD_CONFIGS,
     DenseGridEncoding,
     FrequencyEncoding,
     GridField,

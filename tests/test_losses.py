@@ -10,7 +10,7 @@ import torch
 from open3d_pnerf.losses import (
     LossWeights,
     color_l1,
-    density_l1,
+    depth_pdf_l1,
     depth_l1,
     distortion,
     dsnerf_loss,
@@ -99,27 +99,27 @@ def test_bin_masses_tiny_sigma_with_mu_on_a_bin_edge_is_finite_and_local():
     torch.testing.assert_close(q.sum(), torch.tensor(1.0), atol=1e-5, rtol=0)
 
 
-# -- density_l1 ----------------------------------------------------------------------------
+# -- depth_pdf_l1 ----------------------------------------------------------------------------
 @pytest.mark.parametrize("make_edges", [uniform_edges, nonuniform_edges])
-def test_density_l1_is_zero_for_the_target_itself(make_edges):
+def test_depth_pdf_l1_is_zero_for_the_target_itself(make_edges):
     edges = make_edges(3, 32)
     mu = torch.tensor([1.6, 2.0, 2.7])
     sigma = torch.tensor([0.05, 0.2, 0.1])
     q = gaussian_bin_masses(edges, mu, sigma)
-    assert density_l1(q, edges, mu, sigma).abs().max() < 1e-5
+    assert depth_pdf_l1(q, edges, mu, sigma).abs().max() < 1e-5
     # only the shape matters: an opacity of 0.6 with the same PDF costs nothing either
-    assert density_l1(0.6 * q, edges, mu, sigma).abs().max() < 1e-5
+    assert depth_pdf_l1(0.6 * q, edges, mu, sigma).abs().max() < 1e-5
 
 
-def test_density_l1_of_disjoint_pdfs_is_two():
+def test_depth_pdf_l1_of_disjoint_pdfs_is_two():
     edges = uniform_edges(1, 40)
     mu, sigma = torch.tensor([1.5]), torch.tensor([0.02])
     w = torch.zeros(1, 40)
     w[0, 35] = 1.0  # all mass far from the target
-    assert density_l1(w, edges, mu, sigma).item() == pytest.approx(2.0, abs=1e-4)
+    assert depth_pdf_l1(w, edges, mu, sigma).item() == pytest.approx(2.0, abs=1e-4)
 
 
-def test_density_l1_gradient_step_moves_the_pdf_toward_the_target():
+def test_depth_pdf_l1_gradient_step_moves_the_pdf_toward_the_target():
     edges = uniform_edges(1, 32)
     t = centres(edges)
     mu, sigma = torch.tensor([2.0]), torch.tensor([0.15])
@@ -127,7 +127,7 @@ def test_density_l1_gradient_step_moves_the_pdf_toward_the_target():
 
     def state(lg):
         w = 0.9 * torch.softmax(lg, -1)
-        return density_l1(w, edges, mu, sigma).sum(), (torch.softmax(lg, -1) * t).sum()
+        return depth_pdf_l1(w, edges, mu, sigma).sum(), (torch.softmax(lg, -1) * t).sum()
 
     loss0, depth0 = state(logits)
     loss0.backward()
@@ -139,7 +139,7 @@ def test_density_l1_gradient_step_moves_the_pdf_toward_the_target():
     assert abs(depth1.item() - 2.0) < abs(depth0.item() - 2.0) - 1e-3
 
 
-def test_density_l1_gradient_through_raw_densities_reduces_the_loss():
+def test_depth_pdf_l1_gradient_through_raw_densities_reduces_the_loss():
     edges = uniform_edges(1, 32)
     mu, sigma = torch.tensor([2.0]), torch.tensor([0.1])
     raw = torch.zeros(1, 32, requires_grad=True)  # sigma = exp(0) = 1/m: mass piles up near 1 m
@@ -147,7 +147,7 @@ def test_density_l1_gradient_through_raw_densities_reduces_the_loss():
     def state(r):
         w = render_weights(torch.exp(r), edges)
         p = w / w.sum(-1, keepdim=True)
-        return density_l1(w, edges, mu, sigma).sum(), (p * centres(edges)).sum()
+        return depth_pdf_l1(w, edges, mu, sigma).sum(), (p * centres(edges)).sum()
 
     loss0, depth0 = state(raw)
     loss0.backward()
@@ -158,11 +158,11 @@ def test_density_l1_gradient_through_raw_densities_reduces_the_loss():
     assert abs(depth1.item() - 2.0) < abs(depth0.item() - 2.0)
 
 
-def test_density_l1_with_all_zero_weights_has_finite_loss_and_gradients():
+def test_depth_pdf_l1_with_all_zero_weights_has_finite_loss_and_gradients():
     edges = uniform_edges(2, 16)
     mu, sigma = torch.tensor([1.5, 2.5]), torch.tensor([0.1, 0.0])
     w = torch.zeros(2, 16, requires_grad=True)
-    loss = density_l1(w, edges, mu, sigma)
+    loss = depth_pdf_l1(w, edges, mu, sigma)
     torch.testing.assert_close(loss, torch.ones(2), atol=1e-5, rtol=0)  # sum of q, p = 0
     loss.sum().backward()
     assert torch.isfinite(w.grad).all()
@@ -171,7 +171,7 @@ def test_density_l1_with_all_zero_weights_has_finite_loss_and_gradients():
     sig = torch.relu(raw)  # exactly zero densities
     wr = render_weights(sig, edges)
     assert (wr == 0).all()
-    loss = density_l1(wr, edges, mu, sigma).sum() + depth_l1(wr, centres(edges), mu).sum()
+    loss = depth_pdf_l1(wr, edges, mu, sigma).sum() + depth_l1(wr, centres(edges), mu).sum()
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(raw.grad).all()
 
@@ -270,13 +270,13 @@ def test_total_loss_combines_terms_with_the_gains(two_ray_batch):
     edges, t, w, color, target = two_ray_batch
     render = make_render(w, edges, color)
     mu, sigma = torch.tensor([1.5, 2.0, 2.5]), torch.tensor([0.1, 0.2, 0.05])
-    gains = LossWeights(color=2.0, density=0.5, depth=3.0)
+    gains = LossWeights(color=2.0, depth_pdf=0.5, depth=3.0)
     out = total_loss("pnerf", [render], target, mu, sigma, gains)
     c = color_l1(color, target)
-    d = density_l1(w, edges, mu, sigma).mean()
+    d = depth_pdf_l1(w, edges, mu, sigma).mean()
     z = depth_l1(w, t, mu).mean()
     torch.testing.assert_close(out["color"], c)
-    torch.testing.assert_close(out["density"], d)
+    torch.testing.assert_close(out["depth_pdf"], d)
     torch.testing.assert_close(out["depth"], z)
     torch.testing.assert_close(out["loss"], 2.0 * c + 0.5 * d + 3.0 * z)
     # coarse + fine: every term is summed over the renders
@@ -292,7 +292,7 @@ def test_total_loss_rays_without_target_contribute_only_colour(two_ray_batch):
     assert torch.isfinite(out["loss"])
     has = torch.tensor([True, False, True])
     # depth terms averaged over the 2 rays that have a target, not over all 3
-    torch.testing.assert_close(out["density"], density_l1(w[has], edges[has], mu[has], sigma[has]).mean())
+    torch.testing.assert_close(out["depth_pdf"], depth_pdf_l1(w[has], edges[has], mu[has], sigma[has]).mean())
     torch.testing.assert_close(out["depth"], depth_l1(w[has], t[has], mu[has]).mean())
     # changing the weights of the target-less ray (same colour) changes nothing
     w2 = w.clone()
@@ -303,7 +303,7 @@ def test_total_loss_rays_without_target_contribute_only_colour(two_ray_batch):
     ds1 = total_loss("dsnerf", [make_render(w, edges, color)], target, mu, sigma)
     ds2 = total_loss("dsnerf", [make_render(w2, edges, color)], target, mu, sigma)
     torch.testing.assert_close(ds1["loss"], ds2["loss"])
-    assert ds1["dsnerf"] > 0 and ds1["density"] == 0
+    assert ds1["dsnerf"] > 0 and ds1["depth_pdf"] == 0
 
 
 def test_total_loss_target_weights_scale_each_targets_depth_terms(two_ray_batch):
@@ -315,7 +315,7 @@ def test_total_loss_target_weights_scale_each_targets_depth_terms(two_ray_batch)
     weight = torch.tensor([0.25, 1.0, 7.0])  # the target-less ray's weight plays no part
     out = total_loss("pnerf", [render], target, mu, sigma, target_weight=weight)
     has = torch.tensor([True, True, False])
-    torch.testing.assert_close(out["density"], (density_l1(w[has], edges[has], mu[has], sigma[has])
+    torch.testing.assert_close(out["depth_pdf"], (depth_pdf_l1(w[has], edges[has], mu[has], sigma[has])
                                                 * weight[has]).sum() / 2)
     torch.testing.assert_close(out["depth"], (depth_l1(w[has], t[has], mu[has]) * weight[has]).sum() / 2)
     torch.testing.assert_close(out["color"], color_l1(color, target))

@@ -100,13 +100,13 @@ def test_zero_counts_are_rejected(field):
 def test_config_dict_json_round_trip():
     cfg = ReconstructionConfig.preset(
         "quality", holdout_every=3, time_budget_s=12.5, loss="dsnerf",
-        **{"objective.weights": LossWeights(color=2.0, density=0.3, depth=0.7, dsnerf=0.01)},
+        **{"objective.weights": LossWeights(color=2.0, depth_pdf=0.3, depth=0.7, dsnerf=0.01)},
     )
     data = json.loads(json.dumps(cfg.to_dict()))  # JSON: tuples become lists, weights a dict
     assert isinstance(data["grid"]["resolutions"], list) and isinstance(data["objective"]["weights"], dict)
     back = ReconstructionConfig.from_dict(data)
     assert back == cfg
-    assert isinstance(back.objective.weights, LossWeights) and back.objective.weights.density == 0.3
+    assert isinstance(back.objective.weights, LossWeights) and back.objective.weights.depth_pdf == 0.3
     assert back.grid.resolutions == (16, 32, 64, 128, 256, 384)
     assert isinstance(back.grid.resolutions, tuple)
     assert back.replace(seed=3).seed == 3 and back.seed == cfg.seed
@@ -129,7 +129,7 @@ def test_nested_dicts_dotted_names_and_field_configs():
     assert cfg.hashgrid.levels == 6 and cfg.field_config is cfg.grid and cfg.grid.resolutions == (8, 16)
     field = cfg.build_field(np.array([[0, 0, 0], [1, 1, 1]], np.float32))
     assert [g.shape[-1] for g in field.encoding.grids] == [8, 16]
-    assert cfg.replace(**{"objective.weights.density": 0.2}).objective.weights == LossWeights(density=0.2)
+    assert cfg.replace(**{"objective.weights.depth_pdf": 0.2}).objective.weights == LossWeights(depth_pdf=0.2)
 
 
 def dotted(obj, name: str):
@@ -512,7 +512,7 @@ def test_model_render_is_chunk_independent_and_deterministic(scene):
 
 
 def test_every_depth_weight_decays_to_the_final_factor_and_colour_stays(scene, monkeypatch):
-    cfg = config(max_steps=100, objective={"weights": {"color": 1.0, "density": 0.5, "depth": 0.4, "dsnerf": 0.2},
+    cfg = config(max_steps=100, objective={"weights": {"color": 1.0, "depth_pdf": 0.5, "depth": 0.4, "dsnerf": 0.2},
                                            "depth_weight_final_factor": 0.1})
     trainer = make_trainer(scene, cfg)
     for step, factor in ((0, 1.0), (50, 0.1 ** 0.5), (100, 0.1)):
@@ -520,7 +520,7 @@ def test_every_depth_weight_decays_to_the_final_factor_and_colour_stays(scene, m
         g = trainer.loss_weights()
         assert g.color == 1.0
         # every depth term on the same schedule, the DS-NeRF baseline's too
-        np.testing.assert_allclose([g.density, g.depth, g.dsnerf], np.array([0.5, 0.4, 0.2]) * factor, rtol=1e-12)
+        np.testing.assert_allclose([g.depth_pdf, g.depth, g.dsnerf], np.array([0.5, 0.4, 0.2]) * factor, rtol=1e-12)
     seen = []
     real = model_module.total_loss
     monkeypatch.setattr(model_module, "total_loss", lambda *a: seen.append(a[5]) or real(*a))

@@ -1,10 +1,20 @@
-"""Scene fields (hash grid, dense grid, vanilla NeRF MLP) and their input encodings. Which one a
-reconstruction uses, and with what settings, is chosen by its config (config.FIELD_CONFIGS)."""
+"""Scene fields (hash grid, dense grid, vanilla NeRF MLP), their input encodings and their settings.
+Which one a reconstruction uses, and with what settings, is chosen by its config (FIELD_CONFIGS)."""
 
 from .encodings import DenseGridEncoding, FrequencyEncoding, HashGridEncoding
-from .fields import EncodedField, Field, GridField, HashGridField, VanillaNeRFField
+from .fields import (
+    FIELD_CONFIGS,
+    EncodedField,
+    Field,
+    GridConfig,
+    GridField,
+    HashGridConfig,
+    HashGridField,
+    VanillaConfig,
+    VanillaNeRFField,
+)
 
 __all__ = [
-    "DenseGridEncoding", "EncodedField", "Field", "FrequencyEncoding", "GridField", "HashGridEncoding",
-    "HashGridField", "VanillaNeRFField",
+    "DenseGridEncoding", "EncodedField", "FIELD_CONFIGS", "Field", "FrequencyEncoding", "GridConfig", "GridField",
+    "HashGridConfig", "HashGridEncoding", "HashGridField", "VanillaConfig", "VanillaNeRFField",
 ]

@@ -1,16 +1,22 @@
-"""Scene fields: world position (+ view direction) -> volume density and colour.
+"""Scene fields: world position (+ view direction) -> volume density and colour, and each
+field type's settings (HashGridConfig, GridConfig, VanillaConfig: FIELD_CONFIGS).
 
-Both fields map points inside an axis-aligned box ``aabb`` ((2, 3) metres, min and max
-corner) and return density sigma >= 0 (1/m) and colour in [0, 1].
+The fields map points inside an axis-aligned box ``aabb`` ((2, 3) metres, min and max corner)
+and return density sigma >= 0 (1/m) and colour in [0, 1].
 """
 
 from __future__ import annotations
 
-import torch
-from torch.profiler import record_function
-from torch import nn
+import dataclasses
 
-from .encodings import DenseGridEncoding, FrequencyEncoding, HashGridEncoding
+import torch
+from torch import nn
+from torch.profiler import record_function
+
+from ..errors import ConfigError
+from ..settings import Rule, Settings, count, one_of, setting
+from . import native
+from .encodings import BACKENDS, DenseGridEncoding, FrequencyEncoding, HashGridEncoding
 
 
 def _mlp(in_dim: int, hidden: int, layers: int, out_dim: int) -> nn.Sequential:
@@ -159,3 +165,64 @@ class VanillaNeRFField(Field):
     def color(self, features: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         with self.mlp_precision(features):
             return torch.sigmoid(self.color_head(torch.cat([self.feature(features), self.dir_encoding(d)], -1)).float())
+
+
+# -- the settings of each field type (a sub-config of ReconstructionConfig each) -------------------
+@dataclasses.dataclass
+class HashGridConfig(Settings):
+    """Instant-NGP multi-resolution hash grid (field="hashgrid")."""
+
+    levels: int = setting(8, count(1, native.MAX_LEVELS))
+    """Hash-grid levels, resolutions spaced geometrically from 16 to max_resolution."""
+    features: int = setting(2, count(1))
+    """Features per level."""
+    log2_table_size: int = setting(19, count(4, 26))
+    """log2 of the hash table size per level (memory: levels * 2^size * features floats)."""
+    max_resolution: int = setting(2048, count(16))
+    """Finest hash-grid resolution across the scene box."""
+    backend: str = setting("auto", one_of(BACKENDS))
+    """"auto": the fused CPU kernel (open3d_pnerf.fields.native) where it can be built, else the
+    pure-PyTorch path; "kernel" insists on the kernel (a ConfigError where it cannot run); "torch":
+    the pure-PyTorch path (also on GPUs)."""
+
+    def validate(self, prefix: str = "") -> None:
+        super().validate(prefix)
+        if self.backend == "kernel" and not native.available():
+            raise ConfigError(f"config field {prefix}backend='kernel': the fused kernel cannot run here "
+                              f"({native.unavailable_reason()}); use backend 'auto' or 'torch'")
+
+    def build(self, aabb, bf16: bool = False) -> HashGridField:
+        return HashGridField(aabb, self.levels, self.features, self.log2_table_size, self.max_resolution,
+                             self.backend, bf16=bf16)
+
+
+@dataclasses.dataclass
+class GridConfig(Settings):
+    """Multi-resolution dense grids (field="grid")."""
+
+    resolutions: tuple = setting((16, 32, 64, 128, 192), Rule(
+        "a non-empty tuple of ints >= 2", lambda v: isinstance(v, tuple) and len(v) >= 1 and all(
+            isinstance(r, int) and not isinstance(r, bool) and r >= 2 for r in v)))
+    """Resolutions of the dense grid levels across the scene box."""
+    features: int = setting(2, count(1))
+    """Features per level (memory: sum R^3 * features floats, x4 with Adam)."""
+
+    def build(self, aabb, bf16: bool = False) -> GridField:
+        return GridField(aabb, resolutions=self.resolutions, features=self.features, bf16=bf16)
+
+
+@dataclasses.dataclass
+class VanillaConfig(Settings):
+    """The paper's NeRF MLP (field="vanilla")."""
+
+    width: int = setting(256, count(1))
+    """Hidden units per layer."""
+    depth: int = setting(8, count(5))
+    """Hidden layers (a skip connection at layer 4)."""
+
+    def build(self, aabb, bf16: bool = False) -> VanillaNeRFField:
+        return VanillaNeRFField(aabb, width=self.width, depth=self.depth, bf16=bf16)
+
+
+FIELD_CONFIGS = {"hashgrid": HashGridConfig, "grid": GridConfig, "vanilla": VanillaConfig}
+"""The field types by name (ReconstructionConfig.field), each its settings' class (with build())."""

@@ -7,6 +7,7 @@ import dataclasses
 import torch
 from torch.profiler import record_function
 
+from ..settings import FLAG, Settings, count, setting
 from .rays import Rays
 from .samplers import BatchShare, bin_edges, depth_guided, importance, merge, stratified
 
@@ -49,16 +50,16 @@ def composite(t, edges, sigma, rgb) -> RayRender:
 
 
 @dataclasses.dataclass
-class SamplingConfig:
+class SamplingConfig(Settings):
     """Samples per ray: stratified coarse, importance fine, and depth-guided (where a target exists)."""
 
-    n_coarse: int = 16
+    n_coarse: int = setting(16, count(2))
     """Stratified samples per ray (coarse pass)."""
-    n_fine: int = 8
+    n_fine: int = setting(8, count(0))
     """Importance samples per ray drawn from the coarse weights (fine pass)."""
-    n_guided: int = 16
+    n_guided: int = setting(16, count(0))
     """Samples in mean +- 3 sigma of the depth target (extra importance samples without one)."""
-    depth_guided: bool = True
+    depth_guided: bool = setting(True, FLAG)
     """Place the n_guided samples around the depth target when training with depth terms
     (False: extra importance samples)."""
 

@@ -2,8 +2,8 @@
 sparse targets from SfM points, and their storage."""
 
 from .dense import depth_targets, reproject
-from .noise import SensorNoise
+from .noise import SensorNoise, TargetsConfig
 from .sparse import gaussian_along_ray, sparse_depth_targets
 from .storage import DepthTargets
 
-__all__ = ["DepthTargets", "SensorNoise", "depth_targets", "gaussian_along_ray", "reproject", "sparse_depth_targets"]
+__all__ = ["DepthTargets", "SensorNoise", "TargetsConfig", "depth_targets", "gaussian_along_ray", "reproject", "sparse_depth_targets"]

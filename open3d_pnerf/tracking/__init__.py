@@ -7,7 +7,7 @@
 from .covariance import adjoint, edge_jacobians, pose_graph_covariances, pose_graph_hessian
 from .metrics import absolute_trajectory_error, consistency_of_errors, covariance_consistency, pose_errors, rigid_alignment
 from .odometry import FrameRegistration, OdometryOptions, PairResult
-from .tracker import track
+from .tracker import TrackingConfig, track
 from .trajectory import Edge, Trajectory
 
 __all__ = [
@@ -15,6 +15,7 @@ __all__ = [
     "FrameRegistration",
     "OdometryOptions",
     "PairResult",
+    "TrackingConfig",
     "Trajectory",
     "absolute_trajectory_error",
     "consistency_of_errors",

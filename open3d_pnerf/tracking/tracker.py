@@ -12,6 +12,7 @@ from tqdm.auto import tqdm
 
 from ..data.sequence import RGBDSequence, check_sequence
 from ..errors import InputError, TrackingError
+from ..settings import FLAG, Settings, setting
 from .covariance import pose_graph_covariances
 from .odometry import FrameRegistration, OdometryOptions, PairResult, motion
 from .posegraph import add_edge, loop_closure_candidates, optimize
@@ -23,6 +24,14 @@ entered the odometry chain (with the same sensor's systematic errors), so it is 
 measurement. Chosen on 7-Scenes frames 150-199 with misregistration_rad (NEES per dof with loop
 closures 3.1 at 4, 1.9 at 9); the synthetic room's noise draws agree (0.92 and 1.63 at 320x240
 and 160x120)."""
+
+
+@dataclasses.dataclass
+class TrackingConfig(Settings):
+    """How a reconstruction estimates poses when none are given (see :func:`track`)."""
+
+    loop_closure: bool = setting(True, FLAG)
+    """Register keyframes that see the same place and optimise the pose graph."""
 
 
 def track(
