@@ -27,6 +27,7 @@ Writes benchmarks/results/<name>.json and <name>.md (name: map).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import multiprocessing
 import time
@@ -60,16 +61,10 @@ def mesh_on_heldout(mesh, recon, sequence) -> dict:
 
 
 def export_with(recon, sequence, **export):
-    """The fused mesh of `recon` exported with these ExportConfig fields changed (restored after)."""
-    saved = {k: getattr(recon.config.export, k) for k in export}
-    try:
-        for k, v in export.items():
-            setattr(recon.config.export, k, v)
-        recon.export_geometry(progress=False, sequence=sequence)
-        return recon.mesh
-    finally:
-        for k, v in saved.items():
-            setattr(recon.config.export, k, v)
+    """The fused mesh of `recon` exported with these ExportConfig fields changed."""
+    from open3d_pnerf.export import export_geometry
+
+    return export_geometry(recon, sequence, dataclasses.replace(recon.config.export, **export), progress=False).mesh
 
 
 def run_one(spec: dict) -> dict:
@@ -80,6 +75,7 @@ def run_one(spec: dict) -> dict:
     import open3d_pnerf as pn
     from open3d_pnerf.comparison import compare_with_tsdf
     from open3d_pnerf.evaluation import geometry_metrics, heldout_scores
+    from open3d_pnerf.export import export_geometry
 
     seq, reference = load(spec["source"], Path(spec["cache"]))
     poses, covs = poses_for(spec["source"], seq, "gt", Path(spec["cache"]))
@@ -93,9 +89,8 @@ def run_one(spec: dict) -> dict:
             meshes[f"fused, fill sigma <= {1000 * std:g} mm"] = export_with(recon, seq, max_point_std=std)
         meshes["fused, seen in >= 2 views"] = export_with(recon, seq, mesh_min_views=2)  # seen by two export views
     t0 = time.perf_counter()
-    recon.export_geometry(progress=False)  # the same export without the sensor
+    meshes["model_only"] = export_geometry(recon, progress=False).mesh  # the same export without the sensor
     model_only_export_s = time.perf_counter() - t0
-    meshes["model_only"] = recon.mesh
     out = {k: spec[k] for k in ("dataset", "loss", "seed")}
     out["views"] = len(recon.train_indices)
     out["field"] = {k: comparison.table["model"][k] for k in ("psnr", "ssim", "depth_l1", "within_1", "within_2",

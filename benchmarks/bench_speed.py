@@ -77,7 +77,7 @@ def reconstruction_of(trainer: Trainer, seq, poses) -> Reconstruction:
     cfg = trainer.config
     train, hold = split_frames(len(seq), cfg.holdout_every)
     return Reconstruction(trainer.model, cfg, poses, np.zeros((len(seq), 6, 6)), trainer.batcher.sequence.intrinsic,
-                          trainer.model.field.aabb.cpu().numpy(), train, hold)
+                          train, hold)
 
 
 PREVIOUS_SCRIPT = """

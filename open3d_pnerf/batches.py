@@ -9,7 +9,7 @@ from collections import OrderedDict
 import numpy as np
 import torch
 
-from .camera import camera_rays, pixel_grid, ray_norms
+from .camera import camera_rays, pixel_coordinates, pixel_grid, ray_norms
 from .data.sequence import RGBDSequence
 from .targets import DepthTargets
 
@@ -139,8 +139,7 @@ class RayBatcher:
         else:
             frames = torch.tensor(ids)[which]
         slots, pix, frames = slots.to(self.device), pix.to(self.device), frames.to(self.device)
-        u = (pix % self.width).float()
-        v = (pix // self.width).float()
+        u, v = (c.float() for c in pixel_coordinates(pix, self.width))
         if self.offsets is not None:
             off = self.offsets[slots, pix]
             u, v = u + off[:, 0], v + off[:, 1]

@@ -143,6 +143,11 @@ def pixel_grid(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     return np.meshgrid(np.arange(width), np.arange(height))
 
 
+def pixel_coordinates(flat, width: int):
+    """(u, v), each like `flat`: the column and row of flat pixel indices v * width + u (NumPy or torch)."""
+    return flat % width, flat // width
+
+
 def camera_rays(K, u, v):
     """(..., 3) camera-frame rays K^-1 [u, v, 1] (unit z) of pixels (u, v) (...).
 
@@ -178,9 +183,8 @@ def backproject(depth: np.ndarray, K: np.ndarray, pose: np.ndarray | None = None
     mask: (H, W) bool (default: depth > 0). pose: camera-to-world (4, 4) for world points, None
     for camera-frame points. Returns (M, 3) float64 points and (M,) indices v * W + u.
     """
-    h, w = depth.shape
     flat = np.flatnonzero(depth > 0 if mask is None else mask)
-    v, u = np.divmod(flat, w)
+    u, v = pixel_coordinates(flat, depth.shape[1])
     pts = unproject(K, u, v, depth.ravel()[flat].astype(np.float64))
     if pose is not None:
         pts = pts @ pose[:3, :3].T + pose[:3, 3]

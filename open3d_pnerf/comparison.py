@@ -13,12 +13,12 @@ import numpy as np
 
 from ._files import atomic_write
 from .config import ReconstructionConfig
-from .data.sequence import RGBDSequence
+from .data.sequence import RGBDSequence, evenly_spaced
 from .errors import InputError
 from .evaluation import geometry_metrics, heldout_renders, score_renders
 from .export import write_mesh_ply
 from .pipeline import reconstruct, training_frames
-from .reconstruction import Reconstruction, evenly_spaced
+from .reconstruction import Reconstruction
 from .tsdf import TSDFVolume, tsdf_fusion
 
 

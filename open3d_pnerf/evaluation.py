@@ -8,9 +8,14 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from .data.sequence import RGBDSequence
+from .camera import pixel_coordinates
+from .data.sequence import RGBDSequence, evenly_spaced
+from .error_law import GAUSSIAN_SHARES, depth_nll, sigma_multiple
 from .errors import InputError
 from .tsdf import TSDFVolume
+
+__all__ = ["GAUSSIAN_SHARES", "depth_calibration", "depth_errors", "depth_nll", "geometry_metrics", "heldout_renders",
+           "heldout_scores", "mse_to_psnr", "psnr", "score_renders", "sigma_multiple", "ssim", "training_depth_errors"]
 
 
 def mse_to_psnr(mse):
@@ -51,45 +56,12 @@ def depth_errors(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = No
     }
 
 
-GAUSSIAN_SHARES = {1: 0.6826894921370859, 2: 0.9544997361036416, 3: 0.9973002039367398}
-"""Share of a Gaussian within k sigma of its mean, k = 1, 2, 3."""
-
-
-def _error_law(dof: float):
-    """The standard error law (scipy): Student-t with `dof` degrees of freedom, or a Gaussian (inf),
-    and the half-width of its central 68.27% interval (the 1-sigma equivalent)."""
-    from scipy import stats
-
-    law = stats.norm() if np.isinf(dof) else stats.t(dof)
-    return law, float(law.ppf((1 + GAUSSIAN_SHARES[1]) / 2))
-
-
-def sigma_multiple(probability: float, dof: float = np.inf) -> float:
-    """Half-width, in 1-sigma equivalents, of the central interval that holds `probability` of
-    the depth-error law: a Student-t with `dof` degrees of freedom (inf: a Gaussian) scaled so
-    that 1 sigma-equivalent is the half-width of its central 68.27%. A Gaussian gives 1, 2, 3
-    for 0.683, 0.954, 0.997; heavier tails (smaller dof) give more."""
-    if not 0 < probability < 1:
-        raise InputError(f"probability must be in (0, 1), got {probability!r}")
-    law, one = _error_law(dof)
-    return float(law.ppf((1 + probability) / 2) / one)
-
-
-def depth_nll(err: np.ndarray, sigma: np.ndarray, dof: float = np.inf) -> np.ndarray:
-    """Negative log-likelihood (nats) of depth errors `err` (m) under the law of
-    1-sigma-equivalent `sigma` (m) and `dof` degrees of freedom (:func:`sigma_multiple`);
-    arrays of one shape, or broadcastable."""
-    law, one = _error_law(dof)
-    scale = np.asarray(sigma) / one
-    return np.log(scale) - law.logpdf(np.asarray(err) / scale)
-
-
 def depth_calibration(pred: np.ndarray, std: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None,
                       dof: float = np.inf) -> dict:
     """How well predicted depth sigmas explain the errors on valid pixels.
 
     std: 1-sigma-equivalent errors (m) of the law with `dof` degrees of freedom (inf: a
-    Gaussian; see :func:`sigma_multiple`). within_k: fraction of |pred - gt| inside the law's
+    Gaussian; see :func:`~open3d_pnerf.error_law.sigma_multiple`). within_k: fraction of |pred - gt| inside the law's
     central interval that a Gaussian's k sigma would be (0.683, 0.954, 0.997 of it) for k =
     1, 2, 3: a calibrated law gives those shares; nll: its mean negative log-likelihood (nats).
     """
@@ -156,7 +128,7 @@ def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = Non
     Renders at the training resolution (or `scale` of the sequence). Each item is a dict:
     index (frame), color (H, W, 3) in [0, 1] on the depth grid, depth (H, W) sensor z-depth
     m, model (Reconstruction.render output at the frame's own exposure), depth_dof (the
-    degrees of freedom of its depth-error law, Reconstruction.depth_sigma_dof), tsdf
+    degrees of freedom of its depth-error law), tsdf
     (TSDFVolume.render output or None).
     """
     scale = scale or recon.config.image_scale
@@ -167,7 +139,7 @@ def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = Non
         frame = seq[k]
         yield {
             "index": int(i), "color": seq.color_on_depth_grid(frame.color) / 255.0, "depth": frame.depth,
-            "model": recon.render(recon.poses[i], seq.intrinsic, frame=int(i)), "depth_dof": recon.depth_sigma_dof,
+            "model": recon.render(recon.poses[i], seq.intrinsic, frame=int(i)), "depth_dof": recon.depth_error.dof,
             "tsdf": None if tsdf is None else tsdf.render(recon.poses[i], K, w, h),
         }
 
@@ -194,6 +166,30 @@ def score_renders(renders) -> dict:
                 **{f"depth_{m}": v for m, v in depth_errors(t["depth"], depth, t["hit"]).items()},
             })
     return {name: _mean_rows(r) for name, r in rows.items() if r}
+
+
+def training_depth_errors(recon, sequence: RGBDSequence, frames: int = 8,
+                          pixels: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(err, spread, z), each (M,) metres: a Reconstruction's depth errors against the sensor on
+    its training frames, the raw spread of its depth distribution there (at least 1 um) and the
+    sensor's z-depth. Up to `frames` training frames (evenly spaced) at the training resolution,
+    `pixels` random pixels of each with sensor depth (drawn from config.seed + 2), kept where the
+    model's opacity exceeds 0.5; held-out frames are never read."""
+    train = recon.train_indices[evenly_spaced(len(recon.train_indices), frames)]
+    seq = sequence.select(train).scaled_by(recon.config.image_scale)
+    rng = np.random.default_rng(recon.config.seed + 2)
+    errors, spreads, depths = [], [], []
+    for k, i in enumerate(train):
+        depth = seq[k].depth.reshape(-1)
+        pix = rng.choice(np.flatnonzero(depth > 0), min(pixels, int((depth > 0).sum())), replace=False)
+        u, v = (torch.as_tensor(c, dtype=torch.float32, device=recon.device)
+                for c in pixel_coordinates(pix, seq.image_size[1]))
+        out = recon.render_pixels(recon.poses[i], seq.intrinsic, u, v)
+        ok = out["opacity"] > 0.5
+        errors.append(np.abs(out["depth"] - depth[pix])[ok])
+        spreads.append(np.maximum(out["depth_std"][ok], 1e-6))
+        depths.append(depth[pix][ok])
+    return tuple(np.concatenate(a) if a else np.zeros(0) for a in (errors, spreads, depths))
 
 
 def heldout_scores(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = None, scale: float | None = None) -> dict:

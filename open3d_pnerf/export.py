@@ -1,5 +1,5 @@
-"""Geometry out of a trained field: point clouds with per-point depth sigma, meshes with
-per-vertex depth sigma, PLY.
+"""Geometry out of a trained reconstruction (:func:`export_geometry`): point clouds with per-point
+depth sigma, meshes with per-vertex depth sigma, PLY files; and the export's settings.
 
 Both come from renders at the training views (fused with the sensor's depth where there is
 one: :func:`open3d_pnerf.fusion.fuse_render_with_sensor`): points are back-projected depth
@@ -17,9 +17,12 @@ import numpy as np
 import open3d as o3d
 import plyfile
 from scipy.spatial import cKDTree
+from tqdm.auto import tqdm
 
 from ._files import atomic_write
-from .camera import backproject
+from .camera import backproject, intrinsic_matrix, scale_intrinsic
+from .data.sequence import RGBDSequence, check_sequence, evenly_spaced
+from .fusion import fuse_render_with_sensor
 from .settings import FLAG, Settings, count, number, setting
 from .tsdf import TSDFVolume
 
@@ -161,3 +164,71 @@ def read_point_cloud_ply(path) -> tuple[o3d.geometry.PointCloud, np.ndarray | No
     t = o3d.t.io.read_point_cloud(str(path))
     sigma = t.point.depth_sigma.numpy()[:, 0].copy() if "depth_sigma" in t.point else None
     return t.to_legacy(), sigma
+
+
+@dataclasses.dataclass
+class Geometry:
+    """A reconstruction's exported geometry: a coloured mesh with each vertex's depth sigma
+    mesh_sigma (V,) m, a coloured point cloud with each point's point_sigma (M,) m (None where
+    nothing was exported)."""
+
+    mesh: o3d.geometry.TriangleMesh | None = None
+    mesh_sigma: np.ndarray | None = None
+    point_cloud: o3d.geometry.PointCloud | None = None
+    point_sigma: np.ndarray | None = None
+
+
+def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportConfig | None = None,
+                    progress: bool = True) -> Geometry:
+    """The mesh and point cloud of a Reconstruction, with their depth sigma.
+
+    Renders training views (at most config.max_views, evenly spaced) at config.scale of the
+    training resolution (config.fused_scale when fused with sensor depth). sequence: the input
+    sequence (all frames, as given to reconstruct()); when it has depth images, each view's
+    rendered depth is fused per pixel with the sensor's depth at the training resolution (the
+    render brought to it by nearest pixel) by :func:`~open3d_pnerf.fusion.fuse_render_with_sensor`,
+    with the sensor's random sigma (:class:`~open3d_pnerf.targets.SensorNoise`); its systematic
+    part (targets.depth_sigma_relative) is common to both, the model having learned from this
+    sensor, so it is added to the fused variance afterwards: observed surfaces keep the sensor's
+    accuracy, the others come from the model, each with its fused sigma. config: the export
+    settings (default: the reconstruction's).
+    """
+    cfg = config or recon.config.export
+    frames = recon.train_indices[evenly_spaced(len(recon.train_indices), cfg.max_views)]
+    poses = recon.poses[frames]
+    views = None
+    if sequence is not None:
+        check_sequence(sequence, len(recon.poses), "export_geometry(): sequence")
+        if sequence.has_depth:
+            views = sequence.select(frames).scaled_by(recon.config.image_scale)
+    intr = scale_intrinsic(recon.intrinsic, cfg.scale) if views is None else \
+        scale_intrinsic(views.intrinsic, cfg.fused_scale)
+    K = intrinsic_matrix(intr)
+    renders = [recon.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
+    max_std, stride = cfg.max_point_std, 1  # max_std applies to the model's depth, before any fusion
+    if views is not None:  # fused at the training resolution (the sensor's own), points as dense as config.scale's
+        K, max_std, stride = views.K, np.inf, max(1, round(1 / cfg.scale))
+        noise = recon.config.targets.sensor_noise()
+        for k, r in enumerate(renders):
+            z = _inside_box(views[k].depth, K, poses[k], recon.aabb)
+            # the model learned from this sensor, so its systematic error is common to both:
+            # fuse the independent (random) parts, then add the common part back
+            fused = fuse_render_with_sensor(r, z, noise.sigma(z), cfg.min_opacity, cfg.max_point_std)
+            common = np.where(z > 0, noise.systematic_var(fused["depth"]), 0)
+            fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
+            renders[k] = fused
+    cloud, point_sigma = point_cloud_from_renders(renders, poses, K, cfg.min_opacity, max_std,
+                                                  voxel_size=cfg.mesh_voxel_size / 2, stride=stride)
+    mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, max_std,
+                             min_views=cfg.mesh_min_views)
+    return Geometry(mesh, vertex_sigma(mesh, np.asarray(cloud.points), point_sigma), cloud, point_sigma)
+
+
+def _inside_box(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, aabb: np.ndarray) -> np.ndarray:
+    """A z-depth map (H, W) m with 0 where its point lies outside the scene box aabb (2, 3) (stray far
+    returns the box left out)."""
+    pts, flat = backproject(depth, K, pose)
+    outside = flat[((pts < aabb[0]) | (pts > aabb[1])).any(1)]
+    depth = depth.copy()
+    depth.flat[outside] = 0
+    return depth

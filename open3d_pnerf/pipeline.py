@@ -18,14 +18,15 @@ import torch
 from tqdm.auto import tqdm
 
 from .batches import RayBatcher
-from .camera import backproject, camera_poses, check_covariances
+from .camera import backproject, camera_poses, check_covariances, pixel_coordinates
 from .config import ReconstructionConfig
-from .data.sequence import RGBDSequence, check_sequence
+from .data.sequence import RGBDSequence, check_sequence, evenly_spaced
 from .distributed import DistributedContext, distributed_session
 from .errors import InputError, TrainingInterrupted
+from .export import export_geometry
 from .model import PNeRFModel, build_model
 from .pose_refinement import follow_refinement
-from .reconstruction import Reconstruction, evenly_spaced
+from .reconstruction import Reconstruction
 from .rendering import Rays
 from .rendering.exposure import interpolate_gains
 from .targets import DepthTargets, depth_targets
@@ -169,7 +170,7 @@ def heldout_rays(model: PNeRFModel, sequence: RGBDSequence, hold_idx: np.ndarray
     for k, i in enumerate(hold_idx):
         pix = rng.choice(h * w, min(per, h * w), replace=False)
         color = seq.color_on_depth_grid(seq[k].color).reshape(-1, 3)[pix] / 255.0
-        u, v = torch.as_tensor(pix % w, dtype=torch.float32), torch.as_tensor(pix // w, dtype=torch.float32)
+        u, v = (torch.as_tensor(c, dtype=torch.float32) for c in pixel_coordinates(pix, w))
         rays.append(model.camera_rays(poses[i], seq.K, u.to(model.device), v.to(model.device)))
         rgbs.append(torch.as_tensor(color, dtype=torch.float32, device=model.device))
     return Rays.cat(rays), torch.cat(rgbs)
@@ -235,10 +236,11 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
             shutil.rmtree(storage, ignore_errors=True)
     stages.update(1)
     poses = _refined_poses(model, poses, train_idx, hold_idx)
-    recon = Reconstruction(model, config, poses, covariances, train_seq.intrinsic, aabb, train_idx, hold_idx,
-                           sequence.timestamps, stats={"training": train_stats, "history": history,
-                                                       "targets": targets_summary, "timings": timings},
-                           color_gains=_frame_gains(model, sequence.timestamps, train_idx, hold_idx))
+    recon = Reconstruction(model, config, poses, covariances, train_seq.intrinsic, train_idx, hold_idx,
+                           timestamps=sequence.timestamps,
+                           color_gains=_frame_gains(model, sequence.timestamps, train_idx, hold_idx),
+                           stats={"training": train_stats, "history": history, "targets": targets_summary,
+                                  "timings": timings})
     if not (dist.is_main and export):  # rank 0 calibrates and exports
         stages.close()
         return recon
@@ -289,7 +291,7 @@ def finish(recon: Reconstruction, sequence: RGBDSequence) -> Reconstruction:
     config asks for it) and export the mesh and point cloud."""
     if recon.config.export.calibrate_depth_sigma and sequence.has_depth:
         recon.calibrate_depth_sigma(sequence)
-    recon.export_geometry(progress=recon.config.progress, sequence=sequence)
+    recon.geometry = export_geometry(recon, sequence, progress=recon.config.progress)
     return recon
 
 

@@ -70,6 +70,7 @@ def tiny_reconstruction(shift: float = 0.0):
     import torch
 
     from open3d_pnerf import Reconstruction, ReconstructionConfig
+    from open3d_pnerf.export import Geometry
 
     config = ReconstructionConfig.preset("test", field="grid", progress=False, **{"grid.resolutions": (8, 16)})
     aabb = np.array([[-1, -1, 0], [1, 1, 3]], np.float32) + shift
@@ -81,7 +82,8 @@ def tiny_reconstruction(shift: float = 0.0):
     poses[:, 2, 3] += shift
     points = np.random.default_rng(0).random((10, 3)) + shift
     covariances = np.tile(shift * np.eye(6), (3, 1, 1))
-    return Reconstruction(field, config, poses, covariances, plane_intrinsic(), aabb, [1, 2], [0],
-                          mesh=o3d.geometry.TriangleMesh.create_box(0.1, 0.1, 0.1).translate((0, 0, shift)),
-                          point_cloud=o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)),
-                          point_sigma=np.full(10, 0.01), color_gains=np.full((3, 3), 1 + shift))
+    geometry = Geometry(mesh=o3d.geometry.TriangleMesh.create_box(0.1, 0.1, 0.1).translate((0, 0, shift)),
+                        point_cloud=o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)),
+                        point_sigma=np.full(10, 0.01))
+    return Reconstruction(field, config, poses, covariances, plane_intrinsic(), [1, 2], [0], geometry=geometry,
+                          color_gains=np.full((3, 3), 1 + shift))

@@ -13,7 +13,7 @@ import pytest
 import torch
 from conftest import tiny_reconstruction
 
-import open3d_pnerf.reconstruction as reconstruction_module
+import open3d_pnerf.storage as storage_module
 from open3d_pnerf import Reconstruction, ReconstructionConfig
 from open3d_pnerf.batches import RayBatcher
 from open3d_pnerf.model import build_model
@@ -46,8 +46,8 @@ def test_a_crash_mid_save_leaves_the_previous_files_intact(tmp_path, monkeypatch
     if failing == "model.pt":  # the first file written
         monkeypatch.setattr(torch, "save", half_then(error, torch.save, path_arg=1))
     else:  # the last one: every other new file is complete by then
-        monkeypatch.setattr(reconstruction_module, "write_point_cloud_ply",
-                            half_then(error, reconstruction_module.write_point_cloud_ply))
+        monkeypatch.setattr(storage_module, "write_point_cloud_ply",
+                            half_then(error, storage_module.write_point_cloud_ply))
     newer = tiny_reconstruction(shift=0.5)
     with pytest.raises(type(error)):
         newer.save(folder)

@@ -357,11 +357,12 @@ def small_room():
 
 
 def stub_reconstruction(n: int, holdout=()) -> Reconstruction:
-    """A Reconstruction shell (no field) for argument checks that fail before any render."""
+    """A Reconstruction of an untrained field, for argument checks that fail before any render."""
     intrinsic = o3d.camera.PinholeCameraIntrinsic(80, 60, 65.6, 65.6, 39.5, 29.5)
     train = [i for i in range(n) if i not in holdout]
-    return Reconstruction(None, ReconstructionConfig.preset("test", progress=False), np.tile(np.eye(4), (n, 1, 1)),
-                          np.zeros((n, 6, 6)), intrinsic, [[-3, -3, -1], [3, 3, 3]], train, list(holdout))
+    config = ReconstructionConfig.preset("test", progress=False)
+    return Reconstruction(config.build_field(np.array([[-3, -3, -1], [3, 3, 3]])), config, np.tile(np.eye(4), (n, 1, 1)),
+                          np.zeros((n, 6, 6)), intrinsic, train, list(holdout))
 
 
 def test_compare_with_tsdf_rejects_bad_inputs(small_room):

@@ -6,6 +6,7 @@ preset, 150 steps, ~20 s on one core).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shlex
@@ -23,6 +24,7 @@ from open3d_pnerf.camera import backproject, scale_intrinsic
 from open3d_pnerf.data import load_sample
 from open3d_pnerf.errors import CheckpointError, InputError, TrainingInterrupted
 from open3d_pnerf.export import (
+    export_geometry,
     mesh_from_renders,
     point_cloud_from_renders,
     read_point_cloud_ply,
@@ -31,7 +33,9 @@ from open3d_pnerf.export import (
     write_point_cloud_ply,
 )
 from open3d_pnerf.pipeline import scene_box, split_frames
-from open3d_pnerf.reconstruction import FORMAT_VERSION
+from open3d_pnerf import pipeline
+from open3d_pnerf.error_law import DepthErrorLaw
+from open3d_pnerf.storage import FORMAT_VERSION
 from open3d_pnerf.training import Trainer, read_checkpoint
 from open3d_pnerf.targets import DepthTargets, depth_targets
 
@@ -251,8 +255,7 @@ def wall_reconstruction(z0=1.2):
     aabb = np.array([[-2, -2, 0.8], [2, 2, 1.8]], np.float32)
     # 128 coarse samples over ~1 m: a step in density is located to within half a bin (4 mm)
     cfg = ReconstructionConfig.preset("test", progress=False, **{"sampling.n_coarse": 128})
-    return Reconstruction(WallField(aabb, z0), cfg, np.eye(4)[None], np.zeros((1, 6, 6)), intrinsic(),
-                          aabb, [0], [])
+    return Reconstruction(WallField(aabb, z0), cfg, np.eye(4)[None], np.zeros((1, 6, 6)), intrinsic(), [0], [])
 
 
 def test_render_of_an_analytic_wall_has_the_right_shapes_colour_and_opacity():
@@ -397,8 +400,7 @@ def test_exposure_gains_follow_the_cameras_auto_exposure(recon):
 @pytest.mark.slow
 def test_training_beats_an_untrained_model_on_held_out_frames(recon, sample):
     untrained = Reconstruction(recon.config.build_field(recon.aabb), recon.config, recon.poses,
-                               recon.covariances, recon.intrinsic, recon.aabb, recon.train_indices,
-                               recon.holdout_indices)
+                               recon.covariances, recon.intrinsic, recon.train_indices, recon.holdout_indices)
     small = sample.at_scale(0.5)
     gains = []
     for i in (4, 8):  # held-out frames inside the trajectory (0 is its end)
@@ -511,16 +513,16 @@ def test_load_rejects_a_malicious_model_file(saved, tmp_path):
 @pytest.mark.slow
 def test_depth_std_is_the_scaled_model_spread_with_a_relative_floor(recon):
     pose = recon.poses[recon.train_indices[0]]
-    scale, floor = recon.depth_sigma_scale, recon.depth_sigma_floor
+    law = recon.depth_error
     try:
-        recon.depth_sigma_scale, recon.depth_sigma_floor = 1.0, 0.0
+        recon.depth_error = DepthErrorLaw(1.0, 0.0)
         raw = recon.render(pose)
-        recon.depth_sigma_scale = 2.5
+        recon.depth_error = DepthErrorLaw(2.5, 0.0)
         scaled = recon.render(pose)
-        recon.depth_sigma_floor = 0.01
+        recon.depth_error = DepthErrorLaw(2.5, 0.01)
         floored = recon.render(pose)
     finally:
-        recon.depth_sigma_scale, recon.depth_sigma_floor = scale, floor
+        recon.depth_error = law
     np.testing.assert_allclose(scaled["depth_std"], 2.5 * raw["depth_std"], rtol=1e-5)
     np.testing.assert_allclose(floored["depth_std"], np.hypot(2.5 * raw["depth_std"], 0.01 * raw["depth"]), rtol=1e-5)
     np.testing.assert_array_equal(scaled["depth"], raw["depth"])
@@ -532,7 +534,7 @@ def test_likelihood_fit_recovers_the_scale_floor_and_tails_of_known_errors():
     errors, and a large dof from Gaussian ones."""
     from scipy import stats
 
-    from open3d_pnerf.reconstruction import _likelihood_fit
+    from open3d_pnerf.error_law import _likelihood_fit
 
     rng = np.random.default_rng(0)
     spread = rng.uniform(0.001, 0.05, 20000)
@@ -549,7 +551,7 @@ def test_likelihood_fit_recovers_the_scale_floor_and_tails_of_known_errors():
 
 @pytest.mark.slow
 def test_calibration_fits_on_training_frames_and_quantile_puts_68_percent_within_one_sigma(recon, sample):
-    scale, floor, dof = recon.depth_sigma_scale, recon.depth_sigma_floor, recon.depth_sigma_dof
+    law = recon.depth_error
     try:
         with pytest.raises(InputError, match="method must be"):
             recon.calibrate_depth_sigma(sample, method="bogus")
@@ -568,7 +570,7 @@ def test_calibration_fits_on_training_frames_and_quantile_puts_68_percent_within
             inside.append(np.abs(out["depth"] - depth)[ok] <= out["depth_std"][ok])
         assert abs(np.concatenate(inside).mean() - 0.683) < 0.05
     finally:
-        recon.depth_sigma_scale, recon.depth_sigma_floor, recon.depth_sigma_dof = scale, floor, dof
+        recon.depth_error = law
 
 
 @pytest.mark.slow
@@ -605,18 +607,15 @@ def test_export_fused_with_the_sensor_keeps_its_accuracy_where_it_saw(recon, sam
     tree = cKDTree(sensor)
     fused = np.asarray(recon.point_cloud.points)  # reconstruct() exported with the sequence
     fused_sigma = recon.point_sigma.copy()
-    try:
-        recon.export_geometry(progress=False)  # model only
-        model_only = np.asarray(recon.point_cloud.points)
-    finally:
-        recon.export_geometry(progress=False, sequence=sample)
+    model_only = np.asarray(export_geometry(recon, progress=False).point_cloud.points)
+    np.testing.assert_allclose(np.sort(export_geometry(recon, sample, progress=False).point_sigma),
+                               np.sort(fused_sigma))  # the same export again (voxel order varies)
     d_fused, d_model = tree.query(fused)[0], tree.query(model_only)[0]
     print(f"median distance to the sensor's points: fused {1000 * np.median(d_fused):.1f} mm, "
           f"model only {1000 * np.median(d_model):.1f} mm")
     assert np.median(d_fused) < 0.5 * np.median(d_model)
     assert len(fused) >= len(model_only)  # the sensor adds what the model is not sure of
     assert np.isfinite(fused_sigma).all() and (fused_sigma > 0).all()
-    np.testing.assert_allclose(np.sort(recon.point_sigma), np.sort(fused_sigma))  # voxel order varies
 
 
 # -- long sequences: memory-mapped targets, bounded export ---------------------------------------
@@ -647,21 +646,17 @@ def test_export_renders_at_most_export_max_views(recon, monkeypatch):
     calls = []
     real = Reconstruction.render
     monkeypatch.setattr(Reconstruction, "render", lambda self, pose, *a, **k: calls.append(pose) or real(self, pose, *a, **k))
-    config = recon.config
-    try:
-        recon.config = config.replace(**{"export.max_views": 3})
-        recon.export_geometry(progress=False)
-    finally:
-        recon.config = config
-        recon.export_geometry(progress=False)
+    export_geometry(recon, config=dataclasses.replace(recon.config.export, max_views=3), progress=False)
+    export_geometry(recon, progress=False)
     assert len(calls) == 3 + len(recon.train_indices)
     train = recon.train_indices
     np.testing.assert_allclose(np.stack(calls[:3]), recon.poses[train[[0, len(train) // 2, -1]]])
 
 
 def test_a_saved_folder_loads_and_renders_as_the_version_that_wrote_it_did():
-    """tests/data/saved_format1 was written by an earlier version, with its render of frame 1."""
-    folder = Path(__file__).parent / "data" / "saved_format1"
+    """tests/data/saved_reconstruction (a grid field, its weights written by an earlier version)
+    and that version's render of frame 1: loading and rendering do not drift."""
+    folder = Path(__file__).parent / "data" / "saved_reconstruction"
     recon = Reconstruction.load(folder)
     assert recon.config.field == "grid" and recon.config.grid.resolutions == (8, 16)
     assert recon.config.sampling.n_fine == 16 and recon.config.max_steps == 60  # the old "test" preset
@@ -690,7 +685,7 @@ def test_ctrl_c_stops_reconstruct_after_writing_a_checkpoint_it_resumes_from(sam
     cfg = ReconstructionConfig.preset("test", max_steps=10, progress=False)
     interrupt_training_at(monkeypatch, 3)
     exports = []
-    monkeypatch.setattr(Reconstruction, "export_geometry", lambda self, **k: exports.append(self))
+    monkeypatch.setattr(pipeline, "export_geometry", lambda recon, *a, **k: exports.append(recon))
     with pytest.raises(KeyboardInterrupt) as info:
         reconstruct(seq, cfg, poses=seq.gt_poses, checkpoint_dir=tmp_path / "ckpt")
     assert isinstance(info.value, TrainingInterrupted) and info.value.step == 3 and not exports

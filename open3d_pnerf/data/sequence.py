@@ -312,6 +312,11 @@ class RGBDSequence:
         return seq
 
 
+def evenly_spaced(n: int, k: int) -> np.ndarray:
+    """Indices of min(k, n) items evenly spread over range(n), first and last included."""
+    return np.unique(np.round(np.linspace(0, n - 1, min(k, n))).astype(int)) if n and k else np.zeros(0, int)
+
+
 def check_sequence(sequence, min_frames: int = 1, what: str = "sequence", needs_depth: bool = False) -> RGBDSequence:
     """Return `sequence` if it is an RGBDSequence of at least `min_frames` frames (with depth
     images if `needs_depth`)."""

@@ -1,0 +1,180 @@
+"""A reconstruction's folder on disk: written atomically, read back with every file checked.
+
+The folder holds ``reconstruction.json`` (format version, config, scene box, depth range,
+intrinsic, frame split, timestamps, depth-error law, statistics), ``model.pt`` (the field's
+weights only), ``poses.npy``, ``covariances.npy``, ``color_gains.npy``, ``mesh.ply`` (with
+per-vertex ``depth_sigma``), ``point_cloud.ply`` (with per-point ``depth_sigma``), and the
+trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's ``trajectory.json`` (a
+PinholeCameraTrajectory with the training intrinsic). Reading never unpickles code
+(``torch.load(weights_only=True)``, ``np.load(allow_pickle=False)``).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ._files import atomic_write_all, read_json_object
+from .camera import check_intrinsic, intrinsic_matrix, pinhole
+from .config import ReconstructionConfig
+from .data.trajectories import write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
+from .error_law import DepthErrorLaw
+from .errors import CheckpointError, ConfigError
+from .export import Geometry, read_mesh_ply, read_point_cloud_ply, write_mesh_ply, write_point_cloud_ply
+from .model import build_model
+from .training import safe_torch_load
+
+FORMAT_VERSION = 2
+META_KEYS = ("format_version", "config", "aabb", "depth_range", "intrinsic", "train_indices", "holdout_indices",
+             "timestamps", "depth_error")
+
+
+def write_folder(recon, directory) -> Path:
+    """Write `recon` (a Reconstruction) into `directory`: every file goes to a temporary first and
+    all are renamed at the end, so a failure or Ctrl-C while saving leaves the folder's previous
+    files intact; a mesh or point cloud with nothing in it is not written (and a stale one removed)."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    intr, law, model = recon.intrinsic, recon.depth_error, recon.model
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "config": recon.config.to_dict(),
+        "aabb": recon.aabb.tolist(),
+        "depth_range": None if model.depth_range is None else model.depth_range.tolist(),
+        "intrinsic": {"width": intr.width, "height": intr.height, "K": intrinsic_matrix(intr).tolist()},
+        "train_indices": recon.train_indices.tolist(),
+        "holdout_indices": recon.holdout_indices.tolist(),
+        "timestamps": recon.timestamps.tolist(),
+        "depth_error": {"scale": law.scale, "floor": law.floor, "dof": None if np.isinf(law.dof) else law.dof},
+        "stats": recon.stats,
+    }
+    weights = {k: v.cpu() for k, v in model.field.state_dict().items()}
+    writes = {
+        d / "model.pt": lambda p: torch.save(weights, p),
+        d / "reconstruction.json": lambda p: Path(p).write_text(json.dumps(meta, indent=1)),
+        d / "poses.npy": lambda p: np.save(p, recon.poses),
+        d / "covariances.npy": lambda p: np.save(p, recon.covariances),
+        d / "color_gains.npy": lambda p: np.save(p, recon.color_gains),
+        d / "trajectory_tum.txt": lambda p: write_tum_trajectory(p, recon.poses, recon.timestamps),
+        d / "trajectory.log": lambda p: write_log_trajectory(p, recon.poses),
+        d / "trajectory.json": lambda p: write_open3d_trajectory(p, recon.poses, recon.intrinsic),
+    }
+    geometry, empty = recon.geometry or Geometry(), []
+    for name, shape, write in (
+        ("mesh.ply", geometry.mesh, lambda p: write_mesh_ply(p, geometry.mesh, geometry.mesh_sigma)),
+        ("point_cloud.ply", geometry.point_cloud,
+         lambda p: write_point_cloud_ply(p, geometry.point_cloud, geometry.point_sigma)),
+    ):
+        if shape is not None and not shape.is_empty():
+            writes[d / name] = write
+        else:
+            empty.append(name)
+    atomic_write_all(writes)
+    for name in empty:
+        (d / name).unlink(missing_ok=True)  # never leave a stale file from an earlier run
+        warnings.warn(f"{name} not written: the model has no confident surface yet (train longer)")
+    return d
+
+
+def read_folder(directory, device: str | None = None) -> dict:
+    """The parts of a reconstruction saved by :func:`write_folder`, checked, as Reconstruction's
+    keyword arguments; CheckpointError names the file and what is wrong with it."""
+    d = Path(directory)
+    meta_path = d / "reconstruction.json"
+    meta = _read_meta(meta_path)
+    try:
+        config = ReconstructionConfig.from_dict(meta["config"])
+        if device:
+            config = config.replace(device=device)
+    except (ConfigError, TypeError, ValueError) as exc:
+        raise CheckpointError(f"{meta_path}: incompatible config ({exc})") from None
+    try:
+        aabb = np.asarray(meta["aabb"], np.float32).reshape(2, 3)
+        if not (np.isfinite(aabb).all() and (aabb[0] < aabb[1]).all()):
+            raise ValueError(f"aabb {meta['aabb']} is not a finite [min, max] box")
+        K = np.asarray(meta["intrinsic"]["K"], np.float64).reshape(3, 3)
+        intrinsic = check_intrinsic(pinhole(meta["intrinsic"]["width"], meta["intrinsic"]["height"],
+                                            K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+        timestamps = np.asarray(meta["timestamps"], np.float64).reshape(-1)
+        n = len(timestamps)
+        train, holdout = (np.asarray(meta[k], int).reshape(-1) for k in ("train_indices", "holdout_indices"))
+        if any(((i < 0) | (i >= n)).any() for i in (train, holdout)):
+            raise ValueError(f"frame indices outside [0, {n})")
+        depth_range = _depth_range(meta["depth_range"])
+        law = _error_law(meta["depth_error"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckpointError(f"{meta_path}: malformed metadata ({exc})") from None
+    model = build_model(config, aabb, depth_range=depth_range)
+    try:
+        model.field.load_state_dict(safe_torch_load(d / "model.pt"))
+    except (RuntimeError, KeyError, TypeError) as exc:
+        raise CheckpointError(f"{d / 'model.pt'}: weights do not match the config ({exc})") from None
+    mesh, mesh_sigma = _read_ply(d / "mesh.ply", read_mesh_ply) or (None, None)
+    cloud, point_sigma = _read_ply(d / "point_cloud.ply", read_point_cloud_ply) or (None, None)
+    gains = _load_array(d / "color_gains.npy", (n, 3))
+    if not (gains > 0).all():
+        raise CheckpointError(f"{d / 'color_gains.npy'}: colour gains must be > 0")
+    return dict(model=model, config=config, poses=_load_array(d / "poses.npy", (n, 4, 4)),
+                covariances=_load_array(d / "covariances.npy", (n, 6, 6)), intrinsic=intrinsic, train_indices=train,
+                holdout_indices=holdout, timestamps=timestamps, color_gains=gains, depth_error=law,
+                geometry=Geometry(mesh, mesh_sigma, cloud, point_sigma), stats=meta.get("stats") or {})
+
+
+def _read_meta(path: Path) -> dict:
+    """The JSON object of a saved reconstruction, checked for its format version and keys."""
+    if not path.is_file():
+        raise CheckpointError(f"{path.parent}: not a saved reconstruction (reconstruction.json missing)")
+    meta = read_json_object(path, CheckpointError)
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"{path}: format version {meta.get('format_version')!r}, this library reads "
+                              f"{FORMAT_VERSION} (a folder from an unreleased development version: reconstruct again)")
+    missing = [k for k in META_KEYS if k not in meta]
+    if missing or not isinstance(meta["config"], dict):
+        raise CheckpointError(f"{path}: incomplete, missing {missing or ['config (an object)']}")
+    return meta
+
+
+def _load_array(path: Path, shape: tuple) -> np.ndarray:
+    """A finite .npy array of the given shape (never unpickled)."""
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise CheckpointError(f"{path}: missing or corrupt ({exc})") from None
+    if arr.shape != shape or not np.isfinite(arr).all():
+        raise CheckpointError(f"{path}: expected finite values of shape {shape}, got shape {arr.shape}")
+    return arr
+
+
+def _read_ply(path: Path, read):
+    """read(path), or None without the file; a saved PLY that reads as empty is corrupt."""
+    if not path.is_file():
+        return None
+    out = read(path)
+    if out[0].is_empty():
+        raise CheckpointError(f"{path}: unreadable or empty PLY (a save never writes an empty one)")
+    return out
+
+
+def _depth_range(value) -> np.ndarray | None:
+    """A saved depth_range: None, or finite [near, far] with 0 < near < far (ValueError otherwise)."""
+    if value is None:
+        return None
+    rng = np.asarray(value, np.float64) if isinstance(value, list) else np.full(2, np.nan)
+    if rng.shape != (2,) or not (np.isfinite(rng).all() and 0 < rng[0] < rng[1]):
+        raise ValueError(f"depth_range {value!r} is not [near, far], 0 < near < far")
+    return rng
+
+
+def _error_law(value) -> DepthErrorLaw:
+    """A saved depth_error: {scale > 0, floor >= 0, dof > 0 or null (a Gaussian)} (ValueError otherwise)."""
+    if not isinstance(value, dict) or set(value) != {"scale", "floor", "dof"}:
+        raise ValueError(f"depth_error {value!r} is not {{scale, floor, dof}}")
+    number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)  # noqa: E731
+    scale, floor, dof = value["scale"], value["floor"], value["dof"]
+    if not (number(scale) and scale > 0 and number(floor) and floor >= 0 and (dof is None or number(dof) and dof > 0)):
+        raise ValueError(f"depth_error {value!r}: need scale > 0, floor >= 0 and dof > 0 or null")
+    return DepthErrorLaw(float(scale), float(floor), np.inf if dof is None else float(dof))
