@@ -73,7 +73,7 @@ def run_one(spec: dict) -> dict:
 
     torch.set_num_threads(spec["threads"])
     import open3d_pnerf as pn
-    from open3d_pnerf.comparison import compare_with_tsdf
+    from open3d_pnerf import compare_with_tsdf
     from open3d_pnerf.evaluation import geometry_metrics, heldout_scores
     from open3d_pnerf.export import export_geometry
 

@@ -39,7 +39,8 @@ from open3d_pnerf.batches import RayBatcher
 from open3d_pnerf.evaluation import heldout_scores
 from open3d_pnerf.fields import native
 from open3d_pnerf.model import build_model
-from open3d_pnerf.pipeline import build_targets, split_frames, track_sequence, training_box, training_frames
+from open3d_pnerf.pipeline import build_targets, split_frames, track_sequence, training_frames
+from open3d_pnerf.scene import training_box
 from open3d_pnerf.reconstruction import Reconstruction
 from open3d_pnerf.training import Trainer
 

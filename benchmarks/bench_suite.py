@@ -137,7 +137,7 @@ def run_one(spec: dict) -> dict:
 
     torch.set_num_threads(spec["threads"])
     import open3d_pnerf as pn
-    from open3d_pnerf.comparison import compare_with_tsdf
+    from open3d_pnerf import compare_with_tsdf
 
     seq, reference = load(spec["source"], Path(spec["cache"]))
     poses, covs = poses_for(spec["source"], seq, spec["poses"], Path(spec["cache"]))

@@ -16,12 +16,12 @@ require("open3d")
 require("torch")
 
 from . import errors  # noqa: E402
-from .comparison import Comparison, compare_with_tsdf  # noqa: E402
+from .comparison import Comparison  # noqa: E402
 from .config import ReconstructionConfig  # noqa: E402
 from .data import RGBDSequence, SfMData, load_sample, load_sequence  # noqa: E402
 from .losses import LossWeights  # noqa: E402
 from .model import PNeRFModel  # noqa: E402
-from .pipeline import reconstruct  # noqa: E402
+from .pipeline import compare_with_tsdf, reconstruct  # noqa: E402
 from .reconstruction import Reconstruction  # noqa: E402
 from .synthetic import synthetic_sequence  # noqa: E402
 from .targets import DepthTargets, SensorNoise, depth_targets, sparse_depth_targets  # noqa: E402

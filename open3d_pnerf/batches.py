@@ -1,5 +1,6 @@
 """Training rays as pixels: random pixels of the training frames with their colours and depth
-targets, drawn from a bounded cache of decoded frames."""
+targets, drawn from a bounded cache of decoded frames; and the fixed held-out pixels that
+training scores itself on."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import torch
 
 from .camera import camera_rays, pixel_coordinates, pixel_grid, ray_norms
 from .data.sequence import RGBDSequence
+from .rendering import Rays
 from .targets import DepthTargets
 
 
@@ -177,3 +179,21 @@ class RayBatcher:
         self.queue = [int(i) for i in state["queue"]]
         self.draws = int(state["draws"])
         self.order_rng.bit_generator.state = state["order_rng"]
+
+
+def heldout_rays(model, sequence: RGBDSequence, poses: np.ndarray, seed: int, n_rays: int = 2048):
+    """A fixed random subset of held-out pixels for periodic evaluation: (Rays, rgb (R, 3) in [0, 1])
+    of about n_rays pixels spread over the frames of `sequence` (the held-out frames at the
+    training resolution) with camera-to-world poses (N, 4, 4), drawn from seed + 1; model: the
+    PNeRFModel whose rays they are."""
+    h, w = sequence.image_size
+    rng = np.random.default_rng(seed + 1)
+    per = max(1, n_rays // len(sequence))
+    rays, rgbs = [], []
+    for k, pose in enumerate(poses):
+        pix = rng.choice(h * w, min(per, h * w), replace=False)
+        color = sequence.color_on_depth_grid(sequence[k].color).reshape(-1, 3)[pix] / 255.0
+        u, v = (torch.as_tensor(c, dtype=torch.float32) for c in pixel_coordinates(pix, w))
+        rays.append(model.camera_rays(pose, sequence.K, u.to(model.device), v.to(model.device)))
+        rgbs.append(torch.as_tensor(color, dtype=torch.float32, device=model.device))
+    return Rays.cat(rays), torch.cat(rgbs)

@@ -5,36 +5,34 @@ Ctrl-C exits with 130 after training has written its checkpoint. `reconstruct` a
 train data-parallel when launched by torchrun (`torchrun --nproc-per-node N -m
 open3d_pnerf.cli reconstruct ...`): rank 0 prints and writes every output.
 
-The commands only parse, call the pipeline and write files; the module's length is the six
-commands' option definitions.
+The commands parse their arguments, call the pipeline (:mod:`open3d_pnerf.pipeline`, which runs
+every stage, handles the ranks and writes a reconstruction's run folder) and print.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from ._files import atomic_write
-from .comparison import compare_with_tsdf
+from .comparison import compare
 from .config import ReconstructionConfig
 from .config import overrides as config_overrides
-from .fields import FIELD_CONFIGS
 from .data import load_sample, load_sequence, write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
-from .distributed import BACKENDS, DistributedContext, distributed_session
-from .errors import CheckpointError, ConfigError, DatasetError, InputError, PNeRFError, TrainingInterrupted
+from .distributed import BACKENDS
+from .errors import DatasetError, InputError, PNeRFError, TrainingInterrupted
 from .evaluation import heldout_scores
 from .export import write_mesh_ply, write_point_cloud_ply
+from .fields import FIELD_CONFIGS
 from .losses import LOSSES
-from .pipeline import checked_config, resolve_poses, run, track_sequence
+from .pipeline import RUN_CONFIG, read_run_config, reconstruct_folder, resolve_poses, track_sequence
 from .reconstruction import Reconstruction
-from .report import report_markdown, scores_table
+from .report import scores_table
 from .tracking import absolute_trajectory_error
 from .tsdf import tsdf_fusion
 
@@ -74,126 +72,53 @@ def _config(args):
     return ReconstructionConfig.preset(args.preset, **overrides)
 
 
-def _poses_for(seq, args, config, out: Path, reuse: bool = False, write_cache: bool = True):
-    """(poses, covariances): ground truth if asked, else the pipeline's (SfM poses of an
-    image-only sequence, or tracking reused from out/tracking when resuming, written there if
-    write_cache)."""
-    if args.gt_poses and seq.has_depth:
-        if seq.gt_poses is None or not seq.gt_valid.all():
-            lacking = "has no ground-truth poses" if seq.gt_poses is None else (
-                f"has no ground-truth pose for frames {np.flatnonzero(~seq.gt_valid)[:10].tolist()}; select the "
-                "covered frames with --frames")
-            raise InputError(f"--gt-poses: {args.data} {lacking}")
-        return seq.gt_poses, np.zeros((len(seq), 6, 6))
-    cache = out / "tracking"
-    if seq.has_depth and reuse and (cache / "poses.npy").is_file():
-        return np.load(cache / "poses.npy"), np.load(cache / "covariances.npy")
-    poses, covariances = resolve_poses(seq, config)
-    if seq.has_depth and write_cache:
-        cache.mkdir(parents=True, exist_ok=True)
-        np.save(cache / "poses.npy", poses)
-        np.save(cache / "covariances.npy", covariances)
-    return poses, covariances
+def _gt_poses(seq, args):
+    """The sequence's ground-truth poses when --gt-poses asks for them (InputError if it lacks
+    some), else None (the pipeline's: SfM poses of an image-only sequence, or tracking)."""
+    if not (args.gt_poses and seq.has_depth):
+        return None
+    if seq.gt_poses is None or not seq.gt_valid.all():
+        lacking = "has no ground-truth poses" if seq.gt_poses is None else (
+            f"has no ground-truth pose for frames {np.flatnonzero(~seq.gt_valid)[:10].tolist()}; select the "
+            "covered frames with --frames")
+        raise InputError(f"--gt-poses: {args.data} {lacking}")
+    return seq.gt_poses
 
 
 RUN_OPTIONS = ("data", "frames", "gt_poses", "depth_trunc")  # what run_config.json records about the input
 
 
-def _write_run_config(out: Path, config, args) -> None:
-    """run_config.json: the config and the input options, for --resume and evaluate."""
-    data = args.data if args.data == "sample" else str(Path(args.data).resolve())
+def _inputs(args) -> dict:
+    """The input options that run_config.json records (for --resume and evaluate)."""
     options = {key: getattr(args, key, None) for key in RUN_OPTIONS}
-    _write_json(out / "run_config.json", {"config": config.to_dict(), **options, "data": data})
-
-
-def _read_run_config(out: Path, what: str) -> dict:
-    """The run_config.json of a reconstruct/demo output folder (CheckpointError if absent)."""
-    path = out / "run_config.json"
-    if not path.is_file():
-        raise CheckpointError(f"{what} {out}: no run_config.json there (not a reconstruct output folder)")
-    return json.loads(path.read_text())
-
-
-def _write_json(path: Path, data: dict) -> None:
-    atomic_write(path, lambda p: Path(p).write_text(json.dumps(data, indent=1, default=float)))
-
-
-@contextlib.contextmanager
-def _ranks(config, args):
-    """The torchrun process group (if any) of a training command; ranks other than 0 stay quiet."""
-    runtime = config.runtime
-    with distributed_session(config.device, runtime.dist_backend, runtime.dist_timeout_s) as dist:
-        if not dist.is_main:
-            args.quiet = True
-        yield dist
-
-
-def run_reconstruction(seq, config, out: Path, args, resume: bool = False, dist=None) -> dict:
-    """Track (or reuse poses), train, export, compare with TSDF; write outputs + report.md.
-
-    dist: the DistributedContext of a torchrun launch; ranks other than 0 track and train
-    but write nothing and return {}."""
-    dist = dist or DistributedContext()
-    out.mkdir(parents=True, exist_ok=True)
-    config = checked_config(config)
-    t0 = time.perf_counter()
-    poses, covs = _poses_for(seq, args, config, out, reuse=resume, write_cache=dist.is_main)
-    ate = None
-    if seq.gt_poses is not None and not args.gt_poses:
-        ate = absolute_trajectory_error(poses, seq.gt_poses)["rmse"]
-    tracking_s = time.perf_counter() - t0
-    recon = run(seq, config, poses, covs, out / "checkpoints", resume, dist)
-    if not dist.is_main:
-        return {}
-    recon.stats["timings"]["tracking_s"] = round(tracking_s, 2)
-    recon.save(out)
-    scores, figures = {}, []
-    if len(recon.holdout_indices):  # TSDF of the same training frames and poses; writes tsdf_mesh.ply, figures
-        comparison = compare_with_tsdf(seq, reconstruction=recon, progress=config.progress)
-        comparison.save(out)
-        scores, figures = comparison.table, [f"compare_frame_{i:04d}.png" for i in comparison.frames]
-    report = {"sequence": repr(seq), "frames": len(seq), "ate_rmse_m": ate, "scores": scores, "figures": figures,
-              **recon.stats}
-    _write_json(out / "report.json", report)
-    (out / "report.md").write_text(report_markdown(report, recon))
-    return report
+    return {**options, "data": args.data if args.data == "sample" else str(Path(args.data).resolve())}
 
 
 # -- commands ---------------------------------------------------------------------------------
 def cmd_demo(args) -> int:
     args.data, args.gt_poses = "sample", False
-    seq = load_sample()
-    config = _config(args)
-    with _ranks(config, args) as dist:
-        if dist.is_main:
-            _write_run_config(Path(args.out), config, args)
-        report = run_reconstruction(seq, config, Path(args.out), args, dist=dist)
-    if not dist.is_main:
-        return EXIT_OK
-    print((Path(args.out) / "report.md").read_text())
-    print(f"wrote {args.out}/mesh.ply, point_cloud.ply, tsdf_mesh.ply, report.md")
-    return EXIT_OK if report else EXIT_ERROR
+    report = reconstruct_folder(load_sample(), _config(args), args.out, inputs=_inputs(args))
+    if report is not None:  # rank 0 (of a torchrun launch) reports
+        print((Path(args.out) / "report.md").read_text())
+        print(f"wrote {args.out}/mesh.ply, point_cloud.ply, tsdf_mesh.ply, report.md")
+    return EXIT_OK
 
 
 def cmd_reconstruct(args) -> int:
     out = Path(args.resume or args.out)
     if args.resume:
-
-        saved = _read_run_config(out, "--resume")
+        saved = read_run_config(out, "--resume")
         config = ReconstructionConfig.from_dict(saved["config"])
         if args.finish:  # no step left to train: export what the checkpoint has
             config = config.replace(max_steps=1)
         for key in RUN_OPTIONS:
             setattr(args, key, saved[key])
-        seq = _load(args)
     else:
-        seq = _load(args)
         config = _config(args)
-    with _ranks(config, args) as dist:
-        if dist.is_main and not args.resume:
-            _write_run_config(out, config, args)
-        run_reconstruction(seq, config, out, args, resume=bool(args.resume), dist=dist)
-    if not args.quiet:
+    seq = _load(args)
+    report = reconstruct_folder(seq, config, out, _gt_poses(seq, args), resume=bool(args.resume),
+                                inputs=_inputs(args))
+    if report is not None and not args.quiet:
         print((out / "report.md").read_text())
     return EXIT_OK
 
@@ -218,7 +143,7 @@ def cmd_track(args) -> int:
 def cmd_tsdf(args) -> int:
     seq = _load(args)
     out = Path(args.out)
-    poses, _ = _poses_for(seq, args, ReconstructionConfig(progress=not args.quiet), out)
+    poses = resolve_poses(seq, ReconstructionConfig(progress=not args.quiet), _gt_poses(seq, args))[0]
     volume = tsdf_fusion(seq, poses, voxel_size=args.voxel_size, sdf_trunc=4 * args.voxel_size,
                          return_volume=True, progress=not args.quiet)
     write_mesh_ply(out / "mesh.ply", volume.mesh())
@@ -256,8 +181,8 @@ def cmd_evaluate(args) -> int:
     recon = Reconstruction.load(folder)
     if not len(recon.holdout_indices):
         raise InputError(f"{folder}: the reconstruction has no held-out frames to score (reconstruct with --holdout-every)")
-    config_path = folder / "run_config.json"
-    saved = json.loads(config_path.read_text()) if config_path.is_file() else {}
+    config_path = folder / RUN_CONFIG
+    saved = read_run_config(folder, "evaluate") if config_path.is_file() else {}
     recorded = args.data is None
     if recorded:
         if "data" not in saved:
@@ -273,12 +198,13 @@ def cmd_evaluate(args) -> int:
     if len(seq) != len(recon.poses):
         raise InputError(f"--data {args.data}: {len(seq)} frames, but {folder} reconstructed {len(recon.poses)}")
     if args.tsdf:
-        scores = compare_with_tsdf(seq, reconstruction=recon, progress=not args.quiet).table
+        scores = compare(recon, seq, progress=not args.quiet).table
     else:
         scores = heldout_scores(recon, seq)
     out = Path(args.out) if args.out else folder / "evaluation.json"
-    _write_json(out, {"reconstruction": str(folder.resolve()), "sequence": repr(seq),
-                      "holdout_frames": recon.holdout_indices.tolist(), "scores": scores})
+    result = {"reconstruction": str(folder.resolve()), "sequence": repr(seq),
+              "holdout_frames": recon.holdout_indices.tolist(), "scores": scores}
+    atomic_write(out, lambda p: Path(p).write_text(json.dumps(result, indent=1, default=float)))
     print(f"Held-out frames {recon.holdout_indices.tolist()} of {seq!r}:\n")
     print("\n".join(scores_table(scores)))
     print(f"\nwrote {out}")

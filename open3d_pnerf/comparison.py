@@ -1,6 +1,6 @@
-"""`compare_with_tsdf`: the probabilistic model and Open3D TSDF fusion on the same training
-frames and poses, scored on the held-out frames (and against a reference surface when one
-exists), with side-by-side figures."""
+"""The probabilistic model and Open3D TSDF fusion on the same training frames and poses, scored on
+the held-out frames (and against a reference surface when one exists), with side-by-side figures
+(:func:`compare`; :func:`open3d_pnerf.compare_with_tsdf` trains the model first when asked)."""
 
 from __future__ import annotations
 
@@ -12,12 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from ._files import atomic_write
-from .config import ReconstructionConfig
 from .data.sequence import RGBDSequence, evenly_spaced
 from .errors import InputError
 from .evaluation import geometry_metrics, heldout_renders, score_renders
 from .export import write_mesh_ply
-from .pipeline import reconstruct, training_frames
 from .reconstruction import Reconstruction
 from .tsdf import TSDFVolume, tsdf_fusion
 
@@ -74,32 +72,11 @@ class Comparison:
         return d
 
 
-def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | None = None, poses=None,
-                      covariances=None, reconstruction: Reconstruction | None = None, reference=None,
-                      figure_frames: int = 2, voxel_size: float = 0.01, weight_threshold: float | None = None,
-                      progress: bool = True) -> Comparison:
-    """Train (or take) a model and fuse the TSDF baseline on the same frames; compare them.
-
-    sequence: the RGB-D sequence the model was (or is to be) trained on. config: for
-    training (default: the "fast" preset holding out every 4th frame); ignored when a
-    trained `reconstruction` of this sequence is given. poses/covariances: as for
-    reconstruct(). reference: a ground-truth ``o3d.geometry.TriangleMesh`` or
-    ``PointCloud`` (world frame of the poses) for geometry metrics. voxel_size: TSDF voxel
-    (m), truncation 4 voxels. weight_threshold: the TSDF keeps voxels seen by more training
-    frames than this; None = min(3, training frames / 5) (3 is Open3D's default for dense
-    video; with a few sparse views most surfaces are seen by fewer frames and would vanish).
-    Both are rendered at the held-out poses at the training resolution. An image-only
-    sequence (no depth images, e.g. an LLFF folder) has no TSDF to fuse: the model is
-    scored alone (colour metrics).
-    """
-    if not isinstance(sequence, RGBDSequence):
-        raise InputError(f"sequence must be an RGBDSequence, got {type(sequence).__name__}")
-    if reconstruction is None:
-        config = config or ReconstructionConfig.preset("fast", holdout_every=4, progress=progress)
-        reconstruction = reconstruct(sequence, config, poses=poses, covariances=covariances)
-    elif not isinstance(reconstruction, Reconstruction):
-        raise InputError(f"reconstruction must be a Reconstruction, got {type(reconstruction).__name__}")
-    recon = reconstruction
+def compare(recon: Reconstruction, sequence: RGBDSequence, reference=None, figure_frames: int = 2,
+            voxel_size: float = 0.01, weight_threshold: float | None = None, progress: bool = True) -> Comparison:
+    """A trained Reconstruction and the Open3D TSDF fused from its training frames and poses,
+    scored on its held-out frames (and against `reference`); see
+    :func:`open3d_pnerf.compare_with_tsdf`, which trains one first when asked."""
     if len(recon.poses) != len(sequence):
         raise InputError(f"reconstruction has {len(recon.poses)} frames but the sequence has {len(sequence)}")
     if len(recon.holdout_indices) == 0 and reference is None:
@@ -107,7 +84,7 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
                          "(set config.holdout_every > 0) and no reference surface was given")
     tsdf = None
     if sequence.has_depth:
-        train = training_frames(sequence, recon.train_indices, recon.config)
+        train = sequence.select(recon.train_indices).scaled_by(recon.config.image_scale)
         if weight_threshold is None:
             weight_threshold = min(3.0, len(recon.train_indices) / 5)
         depth_max = float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))  # nothing in the box is farther

@@ -1,40 +1,42 @@
-"""The reconstruction pipeline, stage by stage: poses, depth targets and scene box, the model,
-training, and the finished Reconstruction with its calibration and exported geometry.
-
-``reconstruct()``, the command line, ``compare_with_tsdf`` and the benchmarks all go through
-these functions, so a stage's settings are decided in one place (tracking: :func:`track_sequence`).
+"""The reconstruction pipeline, the one orchestrator of ``reconstruct()``, the command line,
+``compare_with_tsdf`` and the benchmarks: poses, depth targets and the scene box, the model and
+its training, then the Reconstruction with its calibration and exported geometry; and for the
+command line a run folder, with the config, checkpoints, saved reconstruction, comparison with
+TSDF fusion and report. Each stage's settings are decided here, once (tracking:
+:func:`track_sequence`; targets: :func:`build_targets`).
 """
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
-from .batches import RayBatcher
-from .camera import backproject, camera_poses, check_covariances, pixel_coordinates
+from ._files import atomic_write, atomic_write_all, read_json_object
+from .batches import RayBatcher, heldout_rays
+from .camera import camera_poses, check_covariances
+from .comparison import Comparison, compare
 from .config import ReconstructionConfig
 from .data.sequence import RGBDSequence, check_sequence, evenly_spaced
 from .distributed import DistributedContext, distributed_session
-from .errors import InputError, TrainingInterrupted
+from .errors import CheckpointError, InputError, TrainingInterrupted
 from .export import export_geometry
-from .model import PNeRFModel, build_model
-from .pose_refinement import follow_refinement
+from .model import build_model
 from .reconstruction import Reconstruction
-from .rendering import Rays
-from .rendering.exposure import interpolate_gains
+from .report import report_markdown
+from .scene import depth_range, training_box
 from .targets import DepthTargets, depth_targets
 from .targets.storage import BYTES_PER_PIXEL
-from .tracking import Trajectory, track
+from .tracking import Trajectory, absolute_trajectory_error, track
 from .training import Trainer, read_checkpoint
 
 TARGETS_IN_RAM_MAX_BYTES = 512 * 2**20  # larger targets go to memory-mapped files
+RUN_CONFIG = "run_config.json"
 
 
 # -- frames --------------------------------------------------------------------------------------
@@ -72,79 +74,46 @@ def given_poses(poses, covariances, n: int) -> tuple[np.ndarray, np.ndarray]:
     return poses, check_covariances(carried if covariances is None else covariances, n)
 
 
-def resolve_poses(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covariances=None):
-    """(poses (N, 4, 4), covariances (N, 6, 6)): the given ones (see :func:`given_poses`), else the
-    sequence's own (structure from motion, or the capture's), else :func:`track_sequence`'s."""
+def resolve_poses(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covariances=None, cache=None,
+                  reuse: bool = False, write: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(poses (N, 4, 4), covariances (N, 6, 6), tracking): the given ones (see :func:`given_poses`),
+    else the sequence's own (structure from motion, or the capture's), else
+    :func:`track_sequence`'s. Tracked poses are kept in the folder `cache` (when `write`) and
+    taken from it when `reuse` (a resumed run keeps the poses it trained on). tracking:
+    {"tracked": bool, and when tracked on a sequence with ground truth "ate_rmse_m"}."""
     if poses is None and sequence.sfm is not None:
         poses, covariances = sequence.sfm.poses, sequence.sfm.covariances
-    if poses is None:
+    if poses is not None:
+        return (*given_poses(poses, covariances, len(sequence)), {"tracked": False})
+    files = {} if cache is None else {name: Path(cache) / f"{name}.npy" for name in ("poses", "covariances")}
+    if reuse and files and all(path.is_file() for path in files.values()):
+        poses, covariances = given_poses(*(_cached_array(path) for path in files.values()), len(sequence))
+    else:
         trajectory = track_sequence(sequence, config)
-        return trajectory.poses, trajectory.covariances
-    return given_poses(poses, covariances, len(sequence))
+        poses, covariances = trajectory.poses, trajectory.covariances
+        if files and write:
+            atomic_write_all({files["poses"]: lambda p: np.save(p, poses),
+                              files["covariances"]: lambda p: np.save(p, covariances)})
+    tracking = {"tracked": True}
+    if sequence.gt_poses is not None and sequence.gt_valid.any():
+        tracking["ate_rmse_m"] = absolute_trajectory_error(poses, sequence.gt_poses)["rmse"]
+    return poses, covariances, tracking
 
 
-# -- targets and the scene box ---------------------------------------------------------------------
-def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: float = 0.1, stride: int = 4) -> np.ndarray:
-    """(2, 3) axis-aligned box (m) holding the camera centres and the targets' surface points.
-
-    Uses the 0.5-99.5 percentiles of back-projected target depths (every `stride`-th pixel)
-    to ignore stray far points, then pads by `pad` times the size plus 5 cm.
-    """
-    pts = [poses[:, :3, 3]]
-    for i in range(len(targets)):
-        valid = np.zeros_like(targets.valid[i])
-        valid[::stride, ::stride] = targets.valid[i][::stride, ::stride]
-        pts.append(backproject(targets.mean[i], K, poses[i], valid)[0])
-    pts = np.concatenate(pts)
-    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
-    lo, hi = np.minimum(lo, poses[:, :3, 3].min(0)), np.maximum(hi, poses[:, :3, 3].max(0))
-    margin = pad * (hi - lo) + 0.05
-    return np.stack([lo - margin, hi + margin]).astype(np.float32)
+def _cached_array(path: Path) -> np.ndarray:
+    try:
+        return np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise CheckpointError(f"{path}: corrupt tracked poses ({exc}); remove it to track again") from None
 
 
-def frustum_box(K: np.ndarray, image_size: tuple[int, int], poses: np.ndarray, bounds: np.ndarray) -> np.ndarray:
-    """(2, 3) axis-aligned box holding each camera's view frustum between its near and far
-    z-depth bounds (N, 2); K (3, 3), image_size (H, W), poses (N, 4, 4) camera-to-world."""
-    h, w = image_size
-    corners = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [-0.5, h - 0.5, 1], [w - 0.5, h - 0.5, 1]])
-    rays = corners @ np.linalg.inv(K).T  # z = 1
-    pts = [(rays[None] * z[:, None, None]) @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
-           for z in bounds.T]
-    pts = np.concatenate(pts).reshape(-1, 3)
-    return np.stack([pts.min(0), pts.max(0)]).astype(np.float32)
-
-
+# -- depth targets -------------------------------------------------------------------------------
 def build_targets(train_seq: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray, covariances: np.ndarray,
                   storage_dir=None) -> DepthTargets:
     """The depth targets of the training frames (dense fusion, or the SfM points of an image-only
     sequence). Built for every loss: they also bound the scene box."""
-    return depth_targets(train_seq, poses=poses, covariances=covariances,
-                         sensor=config.targets.sensor_noise(), storage_dir=storage_dir,
-                         progress=config.progress)
-
-
-NEAR_MARGIN = 0.9  # depth_range's near plane: 0.9 x the nearest SfM bound, as DS-NeRF (no NDC) and NeRF's LLFF loader
-
-
-def depth_range(train_seq: RGBDSequence) -> np.ndarray | None:
-    """(2,) z-depth [near, far] for every ray of an image-only sequence with SfM bounds:
-    [0.9 x the training frames' smallest near bound, their largest far bound]; None otherwise."""
-    if train_seq.has_depth or train_seq.sfm is None or train_seq.sfm.bounds is None:
-        return None
-    bounds = train_seq.sfm.bounds
-    return np.array([NEAR_MARGIN * bounds[:, 0].min(), bounds[:, 1].max()])
-
-
-def training_box(train_seq: RGBDSequence, targets: DepthTargets, poses: np.ndarray) -> np.ndarray:
-    """(2, 3) scene box of the training frames: around their targets' surfaces and cameras; for an
-    image-only sequence with SfM bounds, the camera frusta within :func:`depth_range` (so no ray
-    leaves the box before its far bound)."""
-    rng = depth_range(train_seq)
-    if rng is None:
-        return scene_box(targets, poses, train_seq.K)
-    if not targets.valid.any():
-        warnings.warn(f"{train_seq.name}: no SfM point gives a depth target in the training views")
-    return frustum_box(train_seq.K, train_seq.image_size, poses, np.tile(rng, (len(poses), 1)))
+    return depth_targets(train_seq, poses=poses, covariances=covariances, sensor=config.targets.sensor_noise(),
+                         storage_dir=storage_dir, progress=config.progress)
 
 
 def targets_storage(train_seq: RGBDSequence, checkpoint_dir, dist: DistributedContext) -> Path | None:
@@ -156,39 +125,19 @@ def targets_storage(train_seq: RGBDSequence, checkpoint_dir, dist: DistributedCo
     return Path(checkpoint_dir) / folder if checkpoint_dir else Path(tempfile.mkdtemp(prefix="pnerf-targets-"))
 
 
-# -- training ------------------------------------------------------------------------------------
-def heldout_rays(model: PNeRFModel, sequence: RGBDSequence, hold_idx: np.ndarray, poses: np.ndarray,
-                 config: ReconstructionConfig, n_rays: int = 2048):
-    """A fixed random subset of held-out pixels (Rays, rgb) for periodic evaluation, or None."""
-    if len(hold_idx) == 0:
-        return None
-    seq = training_frames(sequence, hold_idx, config)
-    h, w = seq.image_size
-    rng = np.random.default_rng(config.seed + 1)
-    per = max(1, n_rays // len(hold_idx))
-    rays, rgbs = [], []
-    for k, i in enumerate(hold_idx):
-        pix = rng.choice(h * w, min(per, h * w), replace=False)
-        color = seq.color_on_depth_grid(seq[k].color).reshape(-1, 3)[pix] / 255.0
-        u, v = (torch.as_tensor(c, dtype=torch.float32) for c in pixel_coordinates(pix, w))
-        rays.append(model.camera_rays(poses[i], seq.K, u.to(model.device), v.to(model.device)))
-        rgbs.append(torch.as_tensor(color, dtype=torch.float32, device=model.device))
-    return Rays.cat(rays), torch.cat(rgbs)
-
-
+# -- every stage ---------------------------------------------------------------------------------
 def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covariances=None, checkpoint_dir=None,
         resume: bool = False, dist: DistributedContext | None = None, export: bool = True) -> Reconstruction:
     """All stages on one rank of `dist` (a single process by default); see :func:`reconstruct`.
     export=False stops after training (no calibration, mesh or point cloud)."""
     dist = dist or DistributedContext()
-    n = len(sequence)
     if not dist.is_main:
         config = config.replace(progress=False)
     if dist.enabled:
         config = config.replace(device=dist.device(config.device))
-    train_idx, hold_idx = split_frames(n, config.holdout_every, config.train_views)
+    train_idx, hold_idx = split_frames(len(sequence), config.holdout_every, config.train_views)
     if poses is not None:  # fail before minutes of work
-        poses, covariances = given_poses(poses, covariances, n)
+        poses, covariances = given_poses(poses, covariances, len(sequence))
     checkpoint = None
     if resume:  # read it now, not after minutes of tracking
         if not checkpoint_dir:
@@ -199,7 +148,8 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     t0 = time.perf_counter()
 
     stages.set_postfix_str("tracking")
-    poses, covariances = resolve_poses(sequence, config, poses, covariances)
+    poses, covariances, tracking = resolve_poses(sequence, config, poses, covariances, checkpoint_dir, resume,
+                                                 write=dist.is_main)
     if dist.enabled:  # every rank trains on rank 0's trajectory, bit for bit
         poses = dist.broadcast_array(poses, "the poses' broadcast", config.device)
         covariances = dist.broadcast_array(covariances, "the covariances' broadcast", config.device)
@@ -220,7 +170,9 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     model = build_model(config, aabb, poses[train_idx], train_seq.K, covariances[train_idx], depth_range(train_seq))
     batcher = RayBatcher(train_seq, targets, model.device, config.seed, config.runtime.cache_frames,
                          target_share=config.optimizer.target_ray_share)
-    eval_rays = heldout_rays(model, sequence, hold_idx, poses, config) if dist.is_main else None
+    eval_rays = None
+    if dist.is_main and len(hold_idx):
+        eval_rays = heldout_rays(model, training_frames(sequence, hold_idx, config), poses[hold_idx], config.seed)
     trainer = Trainer(model, batcher, config, eval_rays, checkpoint_dir, dist)
     if checkpoint is not None:
         trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt", checkpoint)
@@ -228,62 +180,27 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
         train_stats = trainer.train()
         history = trainer.history
         if train_stats["interrupted"]:  # Ctrl-C: keep the work, then stop like any interrupted call
-            raise TrainingInterrupted(trainer.step, _interrupted_checkpoint(trainer, dist))
+            raise TrainingInterrupted(trainer.step, trainer.interrupted_checkpoint())
     finally:
         targets_summary = targets.summary()
         if storage is not None:  # the model has learned them; do not leave gigabytes behind
             del batcher, trainer, targets
             shutil.rmtree(storage, ignore_errors=True)
     stages.update(1)
-    poses = _refined_poses(model, poses, train_idx, hold_idx)
-    recon = Reconstruction(model, config, poses, covariances, train_seq.intrinsic, train_idx, hold_idx,
-                           timestamps=sequence.timestamps,
-                           color_gains=_frame_gains(model, sequence.timestamps, train_idx, hold_idx),
-                           stats={"training": train_stats, "history": history, "targets": targets_summary,
-                                  "timings": timings})
-    if not (dist.is_main and export):  # rank 0 calibrates and exports
-        stages.close()
-        return recon
-
-    stages.set_postfix_str("export")
-    t2 = time.perf_counter()
-    finish(recon, sequence)
-    timings["export_s"] = round(time.perf_counter() - t2, 2)
-    timings["total_s"] = round(time.perf_counter() - t0, 2)
-    stages.update(1)
+    recon = Reconstruction(model, config, model.refined_poses(poses, train_idx, hold_idx), covariances,
+                           train_seq.intrinsic, train_idx, hold_idx, timestamps=sequence.timestamps,
+                           color_gains=model.frame_gains(sequence.timestamps, train_idx, hold_idx),
+                           stats={"tracking": tracking, "training": train_stats, "history": history,
+                                  "targets": targets_summary, "timings": timings})
+    if dist.is_main and export:  # rank 0 calibrates and exports
+        stages.set_postfix_str("export")
+        t2 = time.perf_counter()
+        finish(recon, sequence)
+        timings["export_s"] = round(time.perf_counter() - t2, 2)
+        timings["total_s"] = round(time.perf_counter() - t0, 2)
+        stages.update(1)
     stages.close()
     return recon
-
-
-def _interrupted_checkpoint(trainer: Trainer, dist: DistributedContext) -> Path | None:
-    """The checkpoint of an interrupted training run: the one in checkpoint_dir, or (rank 0,
-    without a checkpoint_dir) one written now to a new temporary folder."""
-    if trainer.checkpoint_dir is None and dist.is_main:
-        trainer.checkpoint_dir = Path(tempfile.mkdtemp(prefix="pnerf-interrupted-"))
-        trainer.save_checkpoint()
-    return trainer.checkpoint_path
-
-
-def _refined_poses(model: PNeRFModel, poses: np.ndarray, train_idx, hold_idx) -> np.ndarray:
-    """The poses after training: refined training poses, and held-out frames moved by the shift
-    that the refinement gave the training frames (unchanged without pose refinement)."""
-    if model.pose_corrections is None:
-        return poses
-    refined = model.pose_corrections.corrected(poses[train_idx])
-    poses = poses.copy()
-    poses[hold_idx] = follow_refinement(poses[train_idx], refined, poses[hold_idx])
-    poses[train_idx] = refined
-    return poses
-
-
-def _frame_gains(model: PNeRFModel, timestamps: np.ndarray, train_idx, hold_idx) -> np.ndarray:
-    """(N, 3) exposure gains of every frame: learned for the training frames, interpolated in
-    time for the held-out ones (ones without exposure compensation)."""
-    gains = np.ones((len(timestamps), 3))
-    if model.exposure is not None:
-        gains[train_idx] = model.exposure.gains().detach().double().cpu().numpy()
-        gains[hold_idx] = interpolate_gains(timestamps[train_idx], gains[train_idx], timestamps[hold_idx])
-    return gains
 
 
 def finish(recon: Reconstruction, sequence: RGBDSequence) -> Reconstruction:
@@ -300,12 +217,13 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     """Reconstruct a probabilistic scene model from an RGB-D sequence.
 
     Stages: poses (tracking, skipped when `poses` are given: (N, 4, 4) camera-to-world, an Open3D
-    ``PinholeCameraTrajectory`` or a Trajectory),
-    per-pixel depth targets, training the model, exporting mesh and point cloud. An image-only
-    sequence (an LLFF folder: ``has_depth`` False) brings its SfM poses and covariances and
-    trains on its sparse points' targets; its depth spread is not calibrated (no sensor depth).
+    ``PinholeCameraTrajectory`` or a Trajectory), per-pixel depth targets, training the model,
+    exporting mesh and point cloud. An image-only sequence (an LLFF folder: ``has_depth`` False)
+    brings its SfM poses and covariances and trains on its sparse points' targets; its depth
+    spread is not calibrated (no sensor depth).
     config: a ReconstructionConfig (default: ReconstructionConfig(), the "fast" preset).
-    checkpoint_dir: where training checkpoints go; resume=True continues from its checkpoint.pt.
+    checkpoint_dir: where training checkpoints (and tracked poses) go; resume=True continues from
+    its checkpoint.pt with the poses tracked before.
 
     Launched by torchrun with several ranks, training is data-parallel (see
     :mod:`open3d_pnerf.distributed`): every rank tracks and builds depth targets itself and
@@ -333,3 +251,76 @@ def checked_config(config: ReconstructionConfig | None) -> ReconstructionConfig:
         raise InputError(f"config must be a ReconstructionConfig, got {type(config).__name__}")
     config.validate()
     return config
+
+
+def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | None = None, poses=None,
+                      covariances=None, reconstruction: Reconstruction | None = None, reference=None,
+                      figure_frames: int = 2, voxel_size: float = 0.01, weight_threshold: float | None = None,
+                      progress: bool = True) -> Comparison:
+    """Train (or take) a model and fuse the TSDF baseline on the same frames; compare them.
+
+    sequence: the RGB-D sequence the model was (or is to be) trained on. config: for
+    training (default: the "fast" preset holding out every 4th frame); ignored when a
+    trained `reconstruction` of this sequence is given. poses/covariances: as for
+    reconstruct(). reference: a ground-truth ``o3d.geometry.TriangleMesh`` or
+    ``PointCloud`` (world frame of the poses) for geometry metrics. voxel_size: TSDF voxel
+    (m), truncation 4 voxels. weight_threshold: the TSDF keeps voxels seen by more training
+    frames than this; None = min(3, training frames / 5) (3 is Open3D's default for dense
+    video; with a few sparse views most surfaces are seen by fewer frames and would vanish).
+    Both are rendered at the held-out poses at the training resolution. An image-only
+    sequence (no depth images, e.g. an LLFF folder) has no TSDF to fuse: the model is
+    scored alone (colour metrics). See :func:`open3d_pnerf.comparison.compare`.
+    """
+    if not isinstance(sequence, RGBDSequence):
+        raise InputError(f"sequence must be an RGBDSequence, got {type(sequence).__name__}")
+    if reconstruction is None:
+        config = config or ReconstructionConfig.preset("fast", holdout_every=4, progress=progress)
+        reconstruction = reconstruct(sequence, config, poses=poses, covariances=covariances)
+    elif not isinstance(reconstruction, Reconstruction):
+        raise InputError(f"reconstruction must be a Reconstruction, got {type(reconstruction).__name__}")
+    return compare(reconstruction, sequence, reference, figure_frames, voxel_size, weight_threshold, progress)
+
+
+# -- a run folder (the command line's) -------------------------------------------------------------
+def reconstruct_folder(sequence: RGBDSequence, config: ReconstructionConfig, out, poses=None, covariances=None,
+                       resume: bool = False, inputs: dict | None = None) -> dict | None:
+    """:func:`reconstruct` into the folder `out`: run_config.json (the config and `inputs`, what
+    names the data, for resuming and evaluating), checkpoints/ (with the tracked poses), the saved
+    reconstruction, its comparison with TSDF fusion on the held-out frames (figures,
+    tsdf_mesh.ply) and report.json / report.md. resume=True continues the run in `out` from its
+    checkpoint. Returns the report; under torchrun every rank trains, rank 0 writes every file
+    and the other ranks return None."""
+    check_sequence(sequence, 2, "reconstruct(): rgbd_sequence")
+    config, out = checked_config(config), Path(out)
+    with distributed_session(config.device, config.runtime.dist_backend, config.runtime.dist_timeout_s) as dist:
+        if dist.is_main and not resume:
+            write_run_config(out, config, inputs or {})
+        recon = run(sequence, config, poses, covariances, out / "checkpoints", resume, dist)
+    if not dist.is_main:
+        return None
+    recon.save(out)
+    scores, figures = {}, []
+    if len(recon.holdout_indices):  # TSDF of the same training frames and poses; writes tsdf_mesh.ply, figures
+        comparison = compare(recon, sequence, progress=config.progress)
+        comparison.save(out)
+        scores, figures = comparison.table, [f"compare_frame_{i:04d}.png" for i in comparison.frames]
+    report = {"sequence": repr(sequence), "frames": len(sequence), "ate_rmse_m": recon.stats["tracking"].get("ate_rmse_m"),
+              "scores": scores, "figures": figures, **recon.stats}
+    atomic_write_all({out / "report.json": lambda p: Path(p).write_text(json.dumps(report, indent=1, default=float)),
+                      out / "report.md": lambda p: Path(p).write_text(report_markdown(report, recon))})
+    return report
+
+
+def write_run_config(out: Path, config: ReconstructionConfig, inputs: dict) -> None:
+    """run_config.json in the run folder `out`: the config and the inputs (what names the data)."""
+    out.mkdir(parents=True, exist_ok=True)
+    text = json.dumps({"config": config.to_dict(), **inputs}, indent=1, default=float)
+    atomic_write(out / RUN_CONFIG, lambda p: Path(p).write_text(text))
+
+
+def read_run_config(out: Path, what: str) -> dict:
+    """The run_config.json of a run folder (CheckpointError naming `what` if it is not one)."""
+    path = Path(out) / RUN_CONFIG
+    if not path.is_file():
+        raise CheckpointError(f"{what} {out}: no {RUN_CONFIG} there (not a reconstruct output folder)")
+    return read_json_object(path, CheckpointError)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import signal
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -208,6 +209,14 @@ class Trainer:
     @property
     def checkpoint_path(self) -> Path | None:
         return self.checkpoint_dir / "checkpoint.pt" if self.checkpoint_dir else None
+
+    def interrupted_checkpoint(self) -> Path | None:
+        """The checkpoint of an interrupted run: the one in checkpoint_dir or, on rank 0 without a
+        checkpoint_dir, one written now to a new temporary folder."""
+        if self.checkpoint_dir is None and self.dist.is_main:
+            self.checkpoint_dir = Path(tempfile.mkdtemp(prefix="pnerf-interrupted-"))
+            self.save_checkpoint()
+        return self.checkpoint_path
 
     def train(self) -> dict:
         """Run until max_steps or the time budget. Ctrl-C finishes the step, checkpoints, stops.

@@ -17,7 +17,7 @@ import open3d_pnerf.storage as storage_module
 from open3d_pnerf import Reconstruction, ReconstructionConfig
 from open3d_pnerf.batches import RayBatcher
 from open3d_pnerf.model import build_model
-from open3d_pnerf.pipeline import scene_box
+from open3d_pnerf.scene import scene_box
 from open3d_pnerf.targets import depth_targets
 from open3d_pnerf.training import Trainer, read_checkpoint
 

@@ -31,7 +31,7 @@ from open3d_pnerf.distributed import ENV_KEYS, DistributedContext, init_distribu
 from open3d_pnerf.errors import ConfigError, DistributedError
 from open3d_pnerf.losses import total_loss
 from open3d_pnerf.model import PNeRFModel, build_model
-from open3d_pnerf.pipeline import scene_box
+from open3d_pnerf.scene import scene_box
 from open3d_pnerf.rendering import BatchShare, SamplingConfig, render_rays
 from open3d_pnerf.targets import depth_targets
 from open3d_pnerf.training import Trainer

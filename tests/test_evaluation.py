@@ -17,7 +17,8 @@ import open3d as o3d
 import pytest
 
 from open3d_pnerf import ReconstructionConfig
-from open3d_pnerf.comparison import Comparison, compare_with_tsdf, comparison_figure
+from open3d_pnerf.comparison import Comparison, comparison_figure
+from open3d_pnerf.pipeline import compare_with_tsdf
 from open3d_pnerf.errors import ConfigError, InputError
 from open3d_pnerf.evaluation import (
     depth_calibration,

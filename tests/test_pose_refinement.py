@@ -98,7 +98,7 @@ def test_pose_corrections_resume_from_a_checkpoint_like_a_straight_run(tmp_path)
     from open3d_pnerf.batches import RayBatcher
     from open3d_pnerf.data import load_sample
     from open3d_pnerf.model import build_model
-    from open3d_pnerf.pipeline import scene_box
+    from open3d_pnerf.scene import scene_box
     from open3d_pnerf.targets import depth_targets
     from open3d_pnerf.training import Trainer
 

@@ -32,7 +32,8 @@ from open3d_pnerf.export import (
     write_mesh_ply,
     write_point_cloud_ply,
 )
-from open3d_pnerf.pipeline import scene_box, split_frames
+from open3d_pnerf.pipeline import split_frames
+from open3d_pnerf.scene import scene_box
 from open3d_pnerf import pipeline
 from open3d_pnerf.error_law import DepthErrorLaw
 from open3d_pnerf.storage import FORMAT_VERSION

@@ -22,7 +22,7 @@ from open3d_pnerf.data import load_sample
 from open3d_pnerf.errors import CheckpointError, ConfigError, TrainingError
 from open3d_pnerf.losses import LossWeights
 from open3d_pnerf.model import build_model
-from open3d_pnerf.pipeline import scene_box
+from open3d_pnerf.scene import scene_box
 from open3d_pnerf.rendering import Rays, make_rays
 from open3d_pnerf.targets import depth_targets
 from open3d_pnerf.targets.storage import allocate

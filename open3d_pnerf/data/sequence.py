@@ -232,13 +232,6 @@ class RGBDSequence:
         """The same frames resized by `factor` relative to this sequence's current size."""
         return self.at_scale(self.image_scale * factor)
 
-    def write_nerfstudio(self, path, poses: np.ndarray | None = None, progress: bool = False):
-        """Write the frames as a nerfstudio folder (``transforms.json``); see
-        :func:`open3d_pnerf.data.nerfstudio.write_nerfstudio`."""
-        from .nerfstudio import write_nerfstudio
-
-        return write_nerfstudio(self, path, poses, progress=progress)
-
     def to_open3d(self, index: int) -> o3d.geometry.RGBDImage:
         """Frame `index` as an ``o3d.geometry.RGBDImage`` (depth float metres, colour uint8).
 

@@ -1,0 +1,68 @@
+"""The scene's extent: the axis-aligned box a field covers, and the depth range of image-only scenes.
+
+An RGB-D scene's box holds the cameras and the depth targets' surfaces; an image-only scene with
+structure-from-motion bounds (LLFF) has every ray clipped to a z-depth range, and its box holds
+the camera frusta over that range.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from .camera import backproject, camera_rays
+from .data.sequence import RGBDSequence
+from .targets import DepthTargets
+
+NEAR_MARGIN = 0.9  # depth_range's near plane: 0.9 x the nearest SfM bound, as DS-NeRF (no NDC) and NeRF's LLFF loader
+
+
+def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: float = 0.1, stride: int = 4) -> np.ndarray:
+    """(2, 3) axis-aligned box (m) holding the camera centres and the targets' surface points.
+
+    Uses the 0.5-99.5 percentiles of back-projected target depths (every `stride`-th pixel)
+    to ignore stray far points, then pads by `pad` times the size plus 5 cm.
+    """
+    pts = [poses[:, :3, 3]]
+    for i in range(len(targets)):
+        valid = np.zeros_like(targets.valid[i])
+        valid[::stride, ::stride] = targets.valid[i][::stride, ::stride]
+        pts.append(backproject(targets.mean[i], K, poses[i], valid)[0])
+    pts = np.concatenate(pts)
+    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
+    lo, hi = np.minimum(lo, poses[:, :3, 3].min(0)), np.maximum(hi, poses[:, :3, 3].max(0))
+    margin = pad * (hi - lo) + 0.05
+    return np.stack([lo - margin, hi + margin]).astype(np.float32)
+
+
+def frustum_box(K: np.ndarray, image_size: tuple[int, int], poses: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """(2, 3) axis-aligned box holding each camera's view frustum between its near and far
+    z-depth bounds (N, 2); K (3, 3), image_size (H, W), poses (N, 4, 4) camera-to-world."""
+    h, w = image_size
+    rays = camera_rays(K, np.array([-0.5, w - 0.5, -0.5, w - 0.5]), np.array([-0.5, -0.5, h - 0.5, h - 0.5]))  # corners
+    pts = [(rays[None] * z[:, None, None]) @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
+           for z in bounds.T]
+    pts = np.concatenate(pts).reshape(-1, 3)
+    return np.stack([pts.min(0), pts.max(0)]).astype(np.float32)
+
+
+def depth_range(sequence: RGBDSequence) -> np.ndarray | None:
+    """(2,) z-depth [near, far] for every ray of an image-only sequence with SfM bounds:
+    [0.9 x the frames' smallest near bound, their largest far bound]; None otherwise."""
+    if sequence.has_depth or sequence.sfm is None or sequence.sfm.bounds is None:
+        return None
+    bounds = sequence.sfm.bounds
+    return np.array([NEAR_MARGIN * bounds[:, 0].min(), bounds[:, 1].max()])
+
+
+def training_box(train_seq: RGBDSequence, targets: DepthTargets, poses: np.ndarray) -> np.ndarray:
+    """(2, 3) scene box of the training frames: around their targets' surfaces and cameras; for an
+    image-only sequence with SfM bounds, the camera frusta within :func:`depth_range` (so no ray
+    leaves the box before its far bound)."""
+    rng = depth_range(train_seq)
+    if rng is None:
+        return scene_box(targets, poses, train_seq.K)
+    if not targets.valid.any():
+        warnings.warn(f"{train_seq.name}: no SfM point gives a depth target in the training views")
+    return frustum_box(train_seq.K, train_seq.image_size, poses, np.tile(rng, (len(poses), 1)))
