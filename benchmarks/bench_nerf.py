@@ -29,7 +29,7 @@ import torch
 
 import open3d_pnerf as pn
 from open3d_pnerf.evaluation import heldout_scores
-from open3d_pnerf.pipeline import run, training_frames
+from open3d_pnerf.pipeline import run
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 TUM = SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz"
@@ -81,7 +81,7 @@ def main():
         recon = pn.reconstruct(seq, cfg, poses=traj.poses, covariances=traj.covariances)
         wall = time.perf_counter() - t
         if tsdf_scores is None:
-            train = training_frames(seq, recon.train_indices, cfg)
+            train = seq.select(recon.train_indices).scaled_by(cfg.image_scale)
             volume = pn.tsdf_fusion(train, traj.poses[recon.train_indices], return_volume=True, progress=False)
             tsdf_scores = heldout_scores(recon, seq, volume)["tsdf"]
         scores = heldout_scores(recon, seq)["model"]

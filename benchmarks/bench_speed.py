@@ -39,7 +39,7 @@ from open3d_pnerf.batches import RayBatcher
 from open3d_pnerf.evaluation import heldout_scores
 from open3d_pnerf.fields import native
 from open3d_pnerf.model import build_model
-from open3d_pnerf.pipeline import build_targets, split_frames, track_sequence, training_frames
+from open3d_pnerf.pipeline import split_frames
 from open3d_pnerf.scene import training_box
 from open3d_pnerf.reconstruction import Reconstruction
 from open3d_pnerf.training import Trainer
@@ -67,8 +67,8 @@ def config(path: str, **overrides) -> pn.ReconstructionConfig:
 def trainer_for(seq, poses, cfg) -> Trainer:
     """A Trainer on the training frames, built by the pipeline's own stages."""
     train, _ = split_frames(len(seq), cfg.holdout_every, cfg.train_views)
-    train_seq = training_frames(seq, train, cfg)
-    targets = build_targets(train_seq, cfg, poses[train], np.zeros((len(train), 6, 6)))
+    train_seq = seq.select(train).scaled_by(cfg.image_scale)
+    targets = cfg.targets.build(train_seq, poses[train], np.zeros((len(train), 6, 6)), progress=False)
     model = build_model(cfg, training_box(train_seq, targets, poses[train]), poses[train], train_seq.K,
                         np.zeros((len(train), 6, 6)))
     return Trainer(model, RayBatcher(train_seq, targets, model.device, cfg.seed), cfg)
@@ -239,7 +239,7 @@ def main():
         sys.exit("the fused kernel cannot be built here (no C++ compiler?): nothing to compare")
     t_start = time.perf_counter()
     seq = pn.load_sequence(TUM) if TUM.is_dir() else pn.load_sample()
-    trajectory = track_sequence(seq, pn.ReconstructionConfig(progress=False))
+    trajectory = pn.ReconstructionConfig().tracking.track(seq, progress=False)
     poses, covs = trajectory.poses, trajectory.covariances
     report = {"machine": {"platform": platform.platform(), "processor": platform.processor(), "threads": args.threads,
                           "torch": torch.__version__},

@@ -116,16 +116,21 @@ def camera_pose(pose, what: str = "pose") -> tuple[np.ndarray, o3d.camera.Pinhol
     return check_poses(np.asarray(pose)[None], 1, what)[0], None
 
 
-def camera_poses(poses, n: int | None = None, what: str = "poses") -> tuple[np.ndarray, np.ndarray | None]:
-    """(poses (N, 4, 4) camera-to-world, covariances (N, 6, 6) or None) of an (N, 4, 4) array of
+def camera_poses(poses, n: int | None = None, what: str = "poses",
+                 covariances=None) -> tuple[np.ndarray, np.ndarray]:
+    """(poses (N, 4, 4) camera-to-world, covariances (N, 6, 6)), checked, of an (N, 4, 4) array of
     camera-to-world poses, an ``o3d.camera.PinholeCameraTrajectory`` (world-to-camera extrinsics,
-    inverted) or a :class:`~open3d_pnerf.tracking.Trajectory` (its poses and covariances)."""
+    inverted) or a :class:`~open3d_pnerf.tracking.Trajectory` (its poses and covariances).
+    covariances: those of the poses when given, else a Trajectory's own, else zeros."""
+    carried = None
     if isinstance(poses, o3d.camera.PinholeCameraTrajectory):
         extrinsics = np.stack([p.extrinsic for p in poses.parameters]) if poses.parameters else np.zeros((0, 4, 4))
-        return check_poses(extrinsic_to_pose(extrinsics), n, f"{what} (a PinholeCameraTrajectory)"), None
-    if hasattr(poses, "poses") and hasattr(poses, "covariances"):  # a Trajectory
-        return check_poses(poses.poses, n, f"{what}.poses"), np.asarray(poses.covariances, np.float64)
-    return check_poses(poses, n, what), None
+        poses = check_poses(extrinsic_to_pose(extrinsics), n, f"{what} (a PinholeCameraTrajectory)")
+    elif hasattr(poses, "poses") and hasattr(poses, "covariances"):  # a Trajectory
+        poses, carried = check_poses(poses.poses, n, f"{what}.poses"), poses.covariances
+    else:
+        poses = check_poses(poses, n, what)
+    return poses, check_covariances(carried if covariances is None else covariances, len(poses))
 
 
 # -- pixels and rays (NumPy or torch) ----------------------------------------------------------

@@ -30,7 +30,7 @@ from .evaluation import heldout_scores
 from .export import write_mesh_ply, write_point_cloud_ply
 from .fields import FIELD_CONFIGS
 from .losses import LOSSES
-from .pipeline import RUN_CONFIG, read_run_config, reconstruct_folder, resolve_poses, track_sequence
+from .pipeline import RUN_CONFIG, read_run_config, reconstruct_folder, resolve_poses
 from .reconstruction import Reconstruction
 from .report import scores_table
 from .tracking import absolute_trajectory_error
@@ -125,7 +125,7 @@ def cmd_reconstruct(args) -> int:
 
 def cmd_track(args) -> int:
     seq = _load(args)
-    traj = track_sequence(seq, ReconstructionConfig(progress=not args.quiet))
+    traj = ReconstructionConfig().tracking.track(seq, progress=not args.quiet)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_tum_trajectory(out / "trajectory_tum.txt", traj.poses, seq.timestamps)

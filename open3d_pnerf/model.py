@@ -114,26 +114,23 @@ class PNeRFModel(nn.Module):
                 outs[k].append(getattr(render, k))
         return {k: torch.cat(v) for k, v in outs.items()}
 
-    def refined_poses(self, poses: np.ndarray, train_idx: np.ndarray, hold_idx: np.ndarray) -> np.ndarray:
-        """The poses (N, 4, 4) of every frame after training: the refined training poses, and the
-        held-out frames moved by the shift the refinement gave the training frames (`poses` as
-        they are without pose refinement)."""
-        if self.pose_corrections is None:
-            return poses
-        refined = self.pose_corrections.corrected(poses[train_idx])
-        poses = poses.copy()
-        poses[hold_idx] = follow_refinement(poses[train_idx], refined, poses[hold_idx])
-        poses[train_idx] = refined
-        return poses
-
-    def frame_gains(self, timestamps: np.ndarray, train_idx: np.ndarray, hold_idx: np.ndarray) -> np.ndarray:
-        """(N, 3) exposure gains of every frame (timestamps (N,) s): learned for the training
-        frames, interpolated in time for the held-out ones (ones without exposure compensation)."""
+    def frames_after_training(self, poses: np.ndarray, timestamps: np.ndarray, train_idx: np.ndarray,
+                              hold_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The poses (N, 4, 4) and colour gains (N, 3) of every frame of a sequence with `poses`
+        and `timestamps` (N,) s after training: the refined training poses (`poses` as they are
+        without pose refinement), the held-out frames moved by the shift the refinement gave the
+        training frames; the learned exposure gains of the training frames, interpolated in time
+        for the held-out ones (ones without exposure compensation)."""
+        if self.pose_corrections is not None:
+            refined = self.pose_corrections.corrected(poses[train_idx])
+            poses = poses.copy()
+            poses[hold_idx] = follow_refinement(poses[train_idx], refined, poses[hold_idx])
+            poses[train_idx] = refined
         gains = np.ones((len(timestamps), 3))
         if self.exposure is not None:
             gains[train_idx] = self.exposure.gains().detach().double().cpu().numpy()
             gains[hold_idx] = interpolate_gains(timestamps[train_idx], gains[train_idx], timestamps[hold_idx])
-        return gains
+        return poses, gains
 
     def camera_rays(self, pose, K, u: torch.Tensor, v: torch.Tensor) -> Rays:
         """Rays of pixels (u, v) (R,) of a camera-to-world pose (4, 4) with intrinsic matrix K

@@ -2,15 +2,14 @@
 ``compare_with_tsdf`` and the benchmarks: poses, depth targets and the scene box, the model and
 its training, then the Reconstruction with its calibration and exported geometry; and for the
 command line a run folder, with the config, checkpoints, saved reconstruction, comparison with
-TSDF fusion and report. Each stage's settings are decided here, once (tracking:
-:func:`track_sequence`; targets: :func:`build_targets`).
+TSDF fusion and report. Each stage takes its settings from its own sub-config of the
+ReconstructionConfig (``config.tracking.track``, ``config.targets.build``, ...).
 """
 
 from __future__ import annotations
 
 import json
 import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from tqdm.auto import tqdm
 
 from ._files import atomic_write, atomic_write_all, read_json_object
 from .batches import RayBatcher, heldout_rays
-from .camera import camera_poses, check_covariances
+from .camera import camera_poses
 from .comparison import Comparison, compare
 from .config import ReconstructionConfig
 from .data.sequence import RGBDSequence, check_sequence, evenly_spaced
@@ -30,12 +29,10 @@ from .model import build_model
 from .reconstruction import Reconstruction
 from .report import report_markdown
 from .scene import depth_range, training_box
-from .targets import DepthTargets, depth_targets
-from .targets.storage import BYTES_PER_PIXEL
-from .tracking import Trajectory, absolute_trajectory_error, track
+from .targets.storage import storage_dir
+from .tracking import absolute_trajectory_error
 from .training import Trainer, read_checkpoint
 
-TARGETS_IN_RAM_MAX_BYTES = 512 * 2**20  # larger targets go to memory-mapped files
 RUN_CONFIG = "run_config.json"
 
 
@@ -55,41 +52,26 @@ def split_frames(n: int, holdout_every: int, train_views: int = 0) -> tuple[np.n
     return train, idx[hold]
 
 
-def training_frames(sequence: RGBDSequence, indices: np.ndarray, config: ReconstructionConfig) -> RGBDSequence:
-    """The frames `indices` of a sequence at the training resolution (config.image_scale of it)."""
-    return sequence.select(indices).scaled_by(config.image_scale)
-
-
 # -- poses ---------------------------------------------------------------------------------------
-def track_sequence(sequence: RGBDSequence, config: ReconstructionConfig) -> Trajectory:
-    """open3d_pnerf.track with the config's tracking settings: the one place that decides them."""
-    return track(sequence, loop_closure=config.tracking.loop_closure, progress=config.progress)
-
-
-def given_poses(poses, covariances, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(poses (n, 4, 4), covariances (n, 6, 6)) of given poses: an (n, 4, 4) camera-to-world array,
-    an ``o3d.camera.PinholeCameraTrajectory`` or a Trajectory (whose covariances are used unless
-    `covariances` is given); covariances zero if none is known."""
-    poses, carried = camera_poses(poses, n, "poses")
-    return poses, check_covariances(carried if covariances is None else covariances, n)
-
-
 def resolve_poses(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covariances=None, cache=None,
                   reuse: bool = False, write: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
-    """(poses (N, 4, 4), covariances (N, 6, 6), tracking): the given ones (see :func:`given_poses`),
-    else the sequence's own (structure from motion, or the capture's), else
-    :func:`track_sequence`'s. Tracked poses are kept in the folder `cache` (when `write`) and
+    """(poses (N, 4, 4), covariances (N, 6, 6), tracking): the given ones, checked (an (N, 4, 4)
+    camera-to-world array, an ``o3d.camera.PinholeCameraTrajectory`` or a Trajectory, whose
+    covariances are used unless `covariances` is given; zeros if none is known),
+    else the sequence's own (structure from motion, or the capture's), else tracked with the
+    config's tracking settings. Tracked poses are kept in the folder `cache` (when `write`) and
     taken from it when `reuse` (a resumed run keeps the poses it trained on). tracking:
     {"tracked": bool, and when tracked on a sequence with ground truth "ate_rmse_m"}."""
     if poses is None and sequence.sfm is not None:
         poses, covariances = sequence.sfm.poses, sequence.sfm.covariances
     if poses is not None:
-        return (*given_poses(poses, covariances, len(sequence)), {"tracked": False})
+        return (*camera_poses(poses, len(sequence), "poses", covariances), {"tracked": False})
     files = {} if cache is None else {name: Path(cache) / f"{name}.npy" for name in ("poses", "covariances")}
     if reuse and files and all(path.is_file() for path in files.values()):
-        poses, covariances = given_poses(*(_cached_array(path) for path in files.values()), len(sequence))
+        poses, covariances = camera_poses(_cached_array(files["poses"]), len(sequence), "tracked poses",
+                                          _cached_array(files["covariances"]))
     else:
-        trajectory = track_sequence(sequence, config)
+        trajectory = config.tracking.track(sequence, config.progress)
         poses, covariances = trajectory.poses, trajectory.covariances
         if files and write:
             atomic_write_all({files["poses"]: lambda p: np.save(p, poses),
@@ -107,24 +89,6 @@ def _cached_array(path: Path) -> np.ndarray:
         raise CheckpointError(f"{path}: corrupt tracked poses ({exc}); remove it to track again") from None
 
 
-# -- depth targets -------------------------------------------------------------------------------
-def build_targets(train_seq: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray, covariances: np.ndarray,
-                  storage_dir=None) -> DepthTargets:
-    """The depth targets of the training frames (dense fusion, or the SfM points of an image-only
-    sequence). Built for every loss: they also bound the scene box."""
-    return depth_targets(train_seq, poses=poses, covariances=covariances, sensor=config.targets.sensor_noise(),
-                         storage_dir=storage_dir, progress=config.progress)
-
-
-def targets_storage(train_seq: RGBDSequence, checkpoint_dir, dist: DistributedContext) -> Path | None:
-    """Where long sequences keep their targets in memory-mapped files (None: in RAM)."""
-    h, w = train_seq.image_size
-    if len(train_seq) * h * w * BYTES_PER_PIXEL <= TARGETS_IN_RAM_MAX_BYTES:
-        return None
-    folder = f"targets-rank{dist.rank}" if dist.enabled else "targets"  # ranks may share checkpoint_dir
-    return Path(checkpoint_dir) / folder if checkpoint_dir else Path(tempfile.mkdtemp(prefix="pnerf-targets-"))
-
-
 # -- every stage ---------------------------------------------------------------------------------
 def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covariances=None, checkpoint_dir=None,
         resume: bool = False, dist: DistributedContext | None = None, export: bool = True) -> Reconstruction:
@@ -136,8 +100,6 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     if dist.enabled:
         config = config.replace(device=dist.device(config.device))
     train_idx, hold_idx = split_frames(len(sequence), config.holdout_every, config.train_views)
-    if poses is not None:  # fail before minutes of work
-        poses, covariances = given_poses(poses, covariances, len(sequence))
     checkpoint = None
     if resume:  # read it now, not after minutes of tracking
         if not checkpoint_dir:
@@ -147,7 +109,7 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     timings = {}
     t0 = time.perf_counter()
 
-    stages.set_postfix_str("tracking")
+    stages.set_postfix_str("tracking")  # given poses are checked first, before any work
     poses, covariances, tracking = resolve_poses(sequence, config, poses, covariances, checkpoint_dir, resume,
                                                  write=dist.is_main)
     if dist.enabled:  # every rank trains on rank 0's trajectory, bit for bit
@@ -156,11 +118,12 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     timings["tracking_s"] = round(time.perf_counter() - t0, 2)
     stages.update(1)
 
-    stages.set_postfix_str("depth targets")
+    stages.set_postfix_str("depth targets")  # built for every loss: they also bound the scene box
     t1 = time.perf_counter()
-    train_seq = training_frames(sequence, train_idx, config)
-    storage = targets_storage(train_seq, checkpoint_dir, dist)
-    targets = build_targets(train_seq, config, poses[train_idx], covariances[train_idx], storage)
+    train_seq = sequence.select(train_idx).scaled_by(config.image_scale)
+    storage = storage_dir(len(train_seq), train_seq.image_size, checkpoint_dir,  # ranks may share checkpoint_dir
+                          f"targets-rank{dist.rank}" if dist.enabled else "targets")
+    targets = config.targets.build(train_seq, poses[train_idx], covariances[train_idx], storage, config.progress)
     box = training_box(train_seq, targets, poses[train_idx])
     aabb = dist.broadcast_array(box, "the scene box's broadcast", config.device)
     timings["targets_s"] = round(time.perf_counter() - t1, 2)
@@ -172,7 +135,8 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
                          target_share=config.optimizer.target_ray_share)
     eval_rays = None
     if dist.is_main and len(hold_idx):
-        eval_rays = heldout_rays(model, training_frames(sequence, hold_idx, config), poses[hold_idx], config.seed)
+        eval_rays = heldout_rays(model, sequence.select(hold_idx).scaled_by(config.image_scale), poses[hold_idx],
+                                 config.seed)
     trainer = Trainer(model, batcher, config, eval_rays, checkpoint_dir, dist)
     if checkpoint is not None:
         trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt", checkpoint)
@@ -187,28 +151,21 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
             del batcher, trainer, targets
             shutil.rmtree(storage, ignore_errors=True)
     stages.update(1)
-    recon = Reconstruction(model, config, model.refined_poses(poses, train_idx, hold_idx), covariances,
-                           train_seq.intrinsic, train_idx, hold_idx, timestamps=sequence.timestamps,
-                           color_gains=model.frame_gains(sequence.timestamps, train_idx, hold_idx),
+    poses, gains = model.frames_after_training(poses, sequence.timestamps, train_idx, hold_idx)
+    recon = Reconstruction(model, config, poses, covariances, train_seq.intrinsic, train_idx, hold_idx,
+                           timestamps=sequence.timestamps, color_gains=gains,
                            stats={"tracking": tracking, "training": train_stats, "history": history,
                                   "targets": targets_summary, "timings": timings})
-    if dist.is_main and export:  # rank 0 calibrates and exports
+    if dist.is_main and export:  # rank 0 calibrates the depth sigma on training frames and exports
         stages.set_postfix_str("export")
         t2 = time.perf_counter()
-        finish(recon, sequence)
+        if config.export.calibrate_depth_sigma and sequence.has_depth:
+            recon.calibrate_depth_sigma(sequence)
+        recon.geometry = export_geometry(recon, sequence, progress=config.progress)
         timings["export_s"] = round(time.perf_counter() - t2, 2)
         timings["total_s"] = round(time.perf_counter() - t0, 2)
         stages.update(1)
     stages.close()
-    return recon
-
-
-def finish(recon: Reconstruction, sequence: RGBDSequence) -> Reconstruction:
-    """Calibrate the depth sigma on the training frames (when the sequence has depth and the
-    config asks for it) and export the mesh and point cloud."""
-    if recon.config.export.calibrate_depth_sigma and sequence.has_depth:
-        recon.calibrate_depth_sigma(sequence)
-    recon.geometry = export_geometry(recon, sequence, progress=recon.config.progress)
     return recon
 
 

@@ -622,10 +622,11 @@ def test_export_fused_with_the_sensor_keeps_its_accuracy_where_it_saw(recon, sam
 # -- long sequences: memory-mapped targets, bounded export ---------------------------------------
 @pytest.mark.slow
 def test_large_targets_go_to_memory_mapped_files_that_are_removed_after_training(sample, tmp_path, monkeypatch):
-    import open3d_pnerf.pipeline as rec
+    import open3d_pnerf.targets.dense as dense
+    import open3d_pnerf.targets.storage as storage
 
     used = []
-    real = rec.depth_targets
+    real = dense.depth_targets
 
     def spy(*args, storage_dir=None, **kwargs):
         used.append(storage_dir)
@@ -633,8 +634,8 @@ def test_large_targets_go_to_memory_mapped_files_that_are_removed_after_training
         assert isinstance(targets.mean, np.memmap)
         return targets
 
-    monkeypatch.setattr(rec, "TARGETS_IN_RAM_MAX_BYTES", 0)
-    monkeypatch.setattr(rec, "depth_targets", spy)
+    monkeypatch.setattr(storage, "RAM_MAX_BYTES", 0)
+    monkeypatch.setattr(dense, "depth_targets", spy)
     cfg = ReconstructionConfig.preset("test", max_steps=5, progress=False, **{"export.calibrate_depth_sigma": False})
     result = reconstruct(sample.select(range(4)), cfg, poses=sample.gt_poses[:4], checkpoint_dir=tmp_path / "ckpt")
     assert used == [tmp_path / "ckpt" / "targets"]
@@ -702,3 +703,28 @@ def test_ctrl_c_stops_reconstruct_after_writing_a_checkpoint_it_resumes_from(sam
     recon = reconstruct(seq, cfg.replace(max_steps=1), poses=seq.gt_poses, checkpoint_dir=tmp_path / "ckpt",
                         resume=True)
     assert recon.stats["training"]["steps"] == 3 and recon.point_cloud is not None
+
+
+@pytest.mark.slow
+def test_a_resumed_run_trains_on_the_poses_it_tracked_before(sample, tmp_path, monkeypatch):
+    """Tracked poses are kept beside the checkpoint: resuming (from Python as from the command
+    line) neither tracks again nor trains on other poses; a run that is not resumed tracks anew."""
+    import open3d_pnerf.tracking.tracker as tracker
+
+    seq = sample.select(range(4))
+    cfg = ReconstructionConfig.preset("test", max_steps=10, progress=False, **{"export.calibrate_depth_sigma": False})
+    interrupt_training_at(monkeypatch, 3)
+    with pytest.raises(TrainingInterrupted):
+        reconstruct(seq, cfg, checkpoint_dir=tmp_path / "ckpt")
+    tracked = np.load(tmp_path / "ckpt" / "poses.npy")
+    assert tracked.shape == (4, 4, 4) and (tmp_path / "ckpt" / "covariances.npy").is_file()
+    monkeypatch.undo()
+    calls = []
+    real = tracker.track
+    monkeypatch.setattr(tracker, "track", lambda *a, **k: calls.append(1) or real(*a, **k))
+    recon = reconstruct(seq, cfg, checkpoint_dir=tmp_path / "ckpt", resume=True)
+    assert not calls and recon.stats["training"]["steps"] == 10 and recon.stats["tracking"]["tracked"] is True
+    np.testing.assert_array_equal(recon.poses, tracked)
+    assert recon.stats["tracking"]["ate_rmse_m"] < 0.02  # tracked, and scored against the sample's ground truth
+    reconstruct(seq, cfg.replace(max_steps=2), checkpoint_dir=tmp_path / "fresh")
+    assert calls == [1]

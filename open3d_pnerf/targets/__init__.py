@@ -1,8 +1,8 @@
 """Uncertain depth targets: the sensor noise model, dense multi-view fusion of RGB-D frames,
 sparse targets from SfM points, and their storage."""
 
-from .dense import depth_targets, reproject
-from .noise import SensorNoise, TargetsConfig
+from .dense import TargetsConfig, depth_targets, reproject
+from .noise import SensorNoise
 from .sparse import gaussian_along_ray, sparse_depth_targets
 from .storage import DepthTargets
 

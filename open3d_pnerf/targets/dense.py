@@ -19,21 +19,44 @@ Variance of a pixel's target, built per frame i:
     consistent neighbour observations (a larger sigma: no own measurement).
 The frame's own pose variance and the sensor's systematic error are common to all
 observations on its ray, so they are added after fusion rather than averaged away.
+A reconstruction's settings of the targets are its TargetsConfig.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..camera import backproject, camera_poses, check_covariances, nearest_per_pixel, nearest_pixels, unit_rays
+from ..camera import backproject, camera_poses, nearest_per_pixel, nearest_pixels, unit_rays
 from ..data.sequence import RGBDSequence, check_sequence
 from ..errors import InputError
+from ..settings import Settings, number, setting
 from .noise import SensorNoise
 from .sparse import sparse_depth_targets
 from .storage import DepthTargets, allocate
+
+
+@dataclasses.dataclass
+class TargetsConfig(Settings):
+    """How a reconstruction builds its depth targets (see :func:`depth_targets`)."""
+
+    depth_sigma_relative: float = setting(SensorNoise.relative, number(0, 1, high_open=True))
+    """Systematic depth error of the sensor as a fraction of depth (SensorNoise.relative):
+    widens every depth target by relative * z in quadrature, after multi-view fusion
+    (calibration and registration errors are shared by all views). 0 = random noise only."""
+
+    def sensor_noise(self) -> SensorNoise:
+        """The sensor noise model with this systematic term (targets and export use it)."""
+        return SensorNoise(relative=self.depth_sigma_relative)
+
+    def build(self, sequence: RGBDSequence, poses: np.ndarray, covariances: np.ndarray, storage_dir=None,
+              progress: bool = True) -> DepthTargets:
+        """:func:`depth_targets` of the frames of `sequence` at `poses` with these settings."""
+        return depth_targets(sequence, poses=poses, covariances=covariances, sensor=self.sensor_noise(),
+                             storage_dir=storage_dir, progress=progress)
 
 
 def depth_targets(
@@ -70,8 +93,7 @@ def depth_targets(
         poses, covariances = sfm.poses, sfm.covariances
     if poses is None:
         raise InputError("depth_targets() needs a trajectory or poses=(N, 4, 4) camera-to-world")
-    poses = camera_poses(poses, n, "poses")[0]
-    covs = check_covariances(covariances, n)
+    poses, covs = camera_poses(poses, n, "poses", covariances)
     if not sequence.has_depth:
         pts = sfm.points
         return sparse_depth_targets(poses, sequence.K, sequence.image_size, pts.xyz, pts.error, pts.observed,

@@ -1,13 +1,10 @@
-"""Depth noise of an RGB-D sensor: the one model that targets assume and the synthetic sensor draws,
-and the targets' settings (TargetsConfig)."""
+"""Depth noise of an RGB-D sensor: the one model that targets assume and the synthetic sensor draws."""
 
 from __future__ import annotations
 
 import dataclasses
 
 import numpy as np
-
-from ..settings import Settings, number, setting
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,16 +30,3 @@ class SensorNoise:
         """Variance (m^2) of the systematic error at z-depth `z` (m), any shape."""
         return (self.relative * z) ** 2
 
-
-@dataclasses.dataclass
-class TargetsConfig(Settings):
-    """How depth targets are built."""
-
-    depth_sigma_relative: float = setting(SensorNoise.relative, number(0, 1, high_open=True))
-    """Systematic depth error of the sensor as a fraction of depth (SensorNoise.relative):
-    widens every depth target by relative * z in quadrature, after multi-view fusion
-    (calibration and registration errors are shared by all views). 0 = random noise only."""
-
-    def sensor_noise(self) -> SensorNoise:
-        """The sensor noise model with this systematic term (targets and export use it)."""
-        return SensorNoise(relative=self.depth_sigma_relative)

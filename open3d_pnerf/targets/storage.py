@@ -3,11 +3,22 @@
 from __future__ import annotations
 
 import dataclasses
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 BYTES_PER_PIXEL = 11  # mean, sigma (float32), valid, support, filled (1 byte each)
+RAM_MAX_BYTES = 512 * 2**20
+"""Targets larger than this go to memory-mapped files (see :func:`storage_dir`)."""
+
+
+def storage_dir(n: int, image_size: tuple[int, int], folder=None, name: str = "targets") -> Path | None:
+    """Where the targets of n frames of image_size (H, W) pixels are kept: None (in RAM) up to
+    RAM_MAX_BYTES, else memory-mapped files in folder/name (a new temporary folder without `folder`)."""
+    if n * image_size[0] * image_size[1] * BYTES_PER_PIXEL <= RAM_MAX_BYTES:
+        return None
+    return Path(folder) / name if folder else Path(tempfile.mkdtemp(prefix="pnerf-targets-"))
 
 
 @dataclasses.dataclass

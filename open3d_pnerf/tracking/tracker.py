@@ -33,6 +33,10 @@ class TrackingConfig(Settings):
     loop_closure: bool = setting(True, FLAG)
     """Register keyframes that see the same place and optimise the pose graph."""
 
+    def track(self, sequence: RGBDSequence, progress: bool = True) -> Trajectory:
+        """:func:`track` with these settings."""
+        return track(sequence, loop_closure=self.loop_closure, progress=progress)
+
 
 def track(
     sequence: RGBDSequence,
