@@ -133,6 +133,55 @@ def camera_poses(poses, n: int | None = None, what: str = "poses",
     return poses, check_covariances(carried if covariances is None else covariances, len(poses))
 
 
+# -- rigid motions: kornia's Lie groups, twists ordered [rotation, translation] ------------------
+def _float64(array):
+    import torch
+
+    return torch.as_tensor(np.asarray(array, np.float64))
+
+
+def rotation_matrix(rotvec) -> np.ndarray:
+    """(..., 3, 3) rotation matrices exp([w]x) of rotation vectors w (..., 3) (radians)."""
+    import torch
+    from kornia.geometry.liegroup import So3
+
+    w = _float64(rotvec)
+    with torch.no_grad():
+        return So3.exp(w.reshape(-1, 3)).matrix().reshape(*w.shape[:-1], 3, 3).numpy()
+
+
+def rotation_vector(matrix) -> np.ndarray:
+    """(..., 3) rotation vectors (radians) of rotation matrices (..., 3, 3): the inverse of
+    :func:`rotation_matrix`."""
+    import torch
+    from kornia.geometry.liegroup import So3
+
+    R = _float64(matrix)
+    with torch.no_grad():
+        return So3.from_matrix(R.reshape(-1, 3, 3)).log().reshape(*R.shape[:-2], 3).numpy()
+
+
+def quaternion_matrix(wxyz) -> np.ndarray:
+    """(3, 3) rotation matrix of a unit quaternion (w, x, y, z)."""
+    import torch
+    from kornia.geometry.liegroup import So3
+
+    with torch.no_grad():
+        return So3.from_wxyz(_float64(wxyz)[None]).matrix()[0].numpy()
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """(6, 6) adjoint of a 4x4 rigid transform for twists [rotation, translation]:
+    ``T exp(xi) T^-1 = exp(adjoint(T) @ xi)``."""
+    import torch
+    from kornia.geometry.liegroup import Se3
+
+    with torch.no_grad():
+        ad = Se3.from_matrix(_float64(T)[None]).adjoint()[0].numpy()  # kornia's twists: [translation, rotation]
+    swap = np.r_[3:6, 0:3]
+    return ad[np.ix_(swap, swap)]
+
+
 # -- pixels and rays (NumPy or torch) ----------------------------------------------------------
 def _backend(a):
     """The array module of `a`: numpy, or torch for a tensor."""

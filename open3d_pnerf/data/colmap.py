@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Mapping
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from ..camera import quaternion_matrix
 from ..errors import DatasetError, InputError
 
 # model id -> (name, number of parameters), as in COLMAP's src/colmap/sensor/models.h
@@ -93,8 +93,7 @@ class ColmapImage:
 
     def camera_to_world(self) -> np.ndarray:
         """(4, 4) float64 camera-to-world pose (COLMAP's camera axes are OpenCV's)."""
-        w, x, y, z = self.qvec
-        rot = Rotation.from_quat([x, y, z, w]).as_matrix()
+        rot = quaternion_matrix(self.qvec)  # COLMAP stores (w, x, y, z)
         pose = np.eye(4)
         pose[:3, :3] = rot.T
         pose[:3, 3] = -rot.T @ self.tvec

@@ -12,6 +12,8 @@ import dataclasses
 
 import torch
 
+from ..camera import camera_rays
+
 
 @dataclasses.dataclass
 class Rays:
@@ -37,17 +39,14 @@ class Rays:
 
 
 def pixel_rays(pose: torch.Tensor, K: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
-    """Origins (R, 3), unit directions (R, 3) and norms ||K^-1 [u, v, 1]|| (R,) of pixels (u, v).
+    """Origins (R, 3), unit world directions (R, 3) and norms ||K^-1 [u, v, 1]|| (R,) of pixels
+    (u, v) (:func:`~open3d_pnerf.camera.camera_rays` rotated into the world).
 
     pose: (4, 4) or (R, 4, 4) camera-to-world; K: (3, 3) or (R, 3, 3).
     """
-    if K.dim() == 2:
-        K = K.expand(u.shape[0], 3, 3)
     if pose.dim() == 2:
         pose = pose.expand(u.shape[0], 4, 4)
-    x = (u - K[:, 0, 2]) / K[:, 0, 0]
-    y = (v - K[:, 1, 2]) / K[:, 1, 1]
-    d_cam = torch.stack([x, y, torch.ones_like(x)], -1)
+    d_cam = camera_rays(K, u, v)
     norms = d_cam.norm(dim=-1)
     directions = (pose[:, :3, :3] @ (d_cam / norms[:, None])[..., None])[..., 0]
     return pose[:, :3, 3].clone(), directions, norms

@@ -4,7 +4,7 @@
     absolute_trajectory_error(traj.poses, sequence.gt_poses)["rmse"]
 """
 
-from .covariance import adjoint, edge_jacobians, pose_graph_covariances, pose_graph_hessian
+from .covariance import edge_jacobians, pose_graph_covariances, pose_graph_hessian
 from .metrics import absolute_trajectory_error, consistency_of_errors, covariance_consistency, pose_errors, rigid_alignment
 from .odometry import FrameRegistration, OdometryOptions, PairResult
 from .tracker import TrackingConfig, track
@@ -20,7 +20,6 @@ __all__ = [
     "absolute_trajectory_error",
     "consistency_of_errors",
     "covariance_consistency",
-    "adjoint",
     "edge_jacobians",
     "pose_graph_covariances",
     "pose_graph_hessian",

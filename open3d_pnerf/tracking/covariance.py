@@ -23,29 +23,11 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
+from ..camera import adjoint
 from ..errors import InputError
 
 # Right-hand sides solved at once when extracting diagonal blocks of H^-1 (memory bound).
 _SOLVE_CHUNK = 600
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """(3, 3) cross-product matrix [v]x of a 3-vector."""
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """(6, 6) adjoint of a 4x4 rigid transform for [rotation, translation] twists.
-
-    ``T exp(xi) T^-1 = exp(adjoint(T) @ xi)``.
-    """
-    R, t = T[:3, :3], T[:3, 3]
-    ad = np.zeros((6, 6))
-    ad[:3, :3] = R
-    ad[3:, 3:] = R
-    ad[3:, :3] = skew(t) @ R
-    return ad
 
 
 def edge_jacobians(pose_source: np.ndarray, pose_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

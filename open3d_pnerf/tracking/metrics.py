@@ -3,25 +3,20 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+import open3d as o3d
 from scipy.stats import chi2
 
-from ..camera import check_poses, missing_poses
+from ..camera import check_poses, missing_poses, rotation_vector
 from ..errors import PoseError
 
 
 def rigid_alignment(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(4, 4) rigid transform (no scale) minimising sum ||T @ source_i - target_i||^2.
-
-    source, target: (N, 3) corresponding points (Kabsch / Umeyama without scale).
-    """
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    u, _, vt = np.linalg.svd((target - mu_t).T @ (source - mu_s))
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    T = np.eye(4)
-    T[:3, :3] = u @ d @ vt
-    T[:3, 3] = mu_t - T[:3, :3] @ mu_s
-    return T
+    """(4, 4) rigid transform (no scale) minimising sum ||T @ source_i - target_i||^2 over
+    corresponding points source, target (N, 3): Open3D's point-to-point estimation."""
+    clouds = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(p, np.float64))) for p in (source, target)]
+    pairs = o3d.utility.Vector2iVector(np.repeat(np.arange(len(source), dtype=np.int32)[:, None], 2, 1))
+    estimate = o3d.pipelines.registration.TransformationEstimationPointToPoint(with_scaling=False)
+    return np.asarray(estimate.compute_transformation(*clouds, pairs))
 
 
 def absolute_trajectory_error(estimate, ground_truth) -> dict:
@@ -63,9 +58,8 @@ def pose_errors(estimate, ground_truth) -> np.ndarray:
         raise PoseError("pose errors are anchored at frame 0, which has no ground-truth pose")
     anchored = est[0] @ np.linalg.inv(gt[0]) @ gt
     delta = np.linalg.inv(est) @ anchored
-    errors = np.concatenate([Rotation.from_matrix(np.nan_to_num(delta[:, :3, :3], nan=0.0) +
-                                                  np.isnan(delta[:, :3, :3]) * np.eye(3)).as_rotvec(),
-                             delta[:, :3, 3]], 1)
+    rotations = np.where(np.isnan(delta[:, :3, :3]), np.eye(3), delta[:, :3, :3])  # NaN rows: identity here
+    errors = np.concatenate([rotation_vector(rotations), delta[:, :3, 3]], 1)
     errors[missing_poses(gt)] = np.nan
     return errors
 

@@ -7,9 +7,9 @@ import warnings
 
 import numpy as np
 import open3d as o3d
-from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
+from ..camera import rotation_vector
 from ..data.sequence import RGBDSequence, check_sequence
 from ..errors import InputError, TrackingError
 from ..settings import FLAG, Settings, setting
@@ -276,7 +276,7 @@ class _Run:
             if moved_m < self.options.inlier_distance_m and turned_deg < 1.0:
                 continue
             step = np.linalg.inv(other) @ self.poses[source] @ np.linalg.inv(transformation)  # exp(xi)
-            xi = np.concatenate([Rotation.from_matrix(step[:3, :3]).as_rotvec(), step[:3, 3]])
+            xi = np.concatenate([rotation_vector(step[:3, :3]), step[:3, 3]])
             extra += np.outer(xi, xi)
         return extra
 

@@ -34,9 +34,8 @@ import functools
 
 import numpy as np
 
-from scipy.spatial.transform import Rotation
 
-from ..camera import backproject
+from ..camera import backproject, rotation_matrix
 from ..targets.noise import SensorNoise
 
 TILES = (16, 12)  # columns x rows of the source image's clusters
@@ -232,7 +231,7 @@ def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, i
 def _exp(xi: np.ndarray) -> np.ndarray:
     """(4, 4) rigid transform of a small twist [rotation, translation] (rotation exact, translation first order)."""
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+    T[:3, :3] = rotation_matrix(xi[:3])
     T[:3, 3] = xi[3:]
     return T
 
