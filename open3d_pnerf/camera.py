@@ -162,12 +162,24 @@ def rotation_vector(matrix) -> np.ndarray:
 
 
 def quaternion_matrix(wxyz) -> np.ndarray:
-    """(3, 3) rotation matrix of a unit quaternion (w, x, y, z)."""
+    """(..., 3, 3) rotation matrices of quaternions (..., 4) (w, x, y, z), normalised first."""
     import torch
     from kornia.geometry.liegroup import So3
 
+    q = _float64(wxyz)
+    q = q / q.norm(dim=-1, keepdim=True)
     with torch.no_grad():
-        return So3.from_wxyz(_float64(wxyz)[None]).matrix()[0].numpy()
+        return So3.from_wxyz(q.reshape(-1, 4)).matrix().reshape(*q.shape[:-1], 3, 3).numpy()
+
+
+def matrix_quaternion(matrix) -> np.ndarray:
+    """(..., 4) unit quaternions (w, x, y, z) of rotation matrices (..., 3, 3)."""
+    import torch
+    from kornia.geometry.liegroup import So3
+
+    R = _float64(matrix)
+    with torch.no_grad():
+        return So3.from_matrix(R.reshape(-1, 3, 3)).q.data.reshape(*R.shape[:-2], 4).numpy()
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:

@@ -5,10 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .._files import atomic_write
-from ..camera import check_poses, pose_to_extrinsic
+from ..camera import check_poses, matrix_quaternion, pose_to_extrinsic
 from ..errors import DatasetError, InputError
 
 
@@ -38,7 +37,7 @@ def write_log_trajectory(path, poses: np.ndarray) -> None:
 
 def write_tum_trajectory(path, poses: np.ndarray, timestamps: np.ndarray) -> None:
     """Write (N, 4, 4) camera-to-world poses as TUM 'timestamp tx ty tz qx qy qz qw' lines, atomically."""
-    quats = Rotation.from_matrix(np.asarray(poses)[:, :3, :3]).as_quat()
+    quats = np.roll(matrix_quaternion(np.asarray(poses)[:, :3, :3]), -1, axis=1)  # (w, x, y, z) -> (x, y, z, w)
     lines = [
         f"{t:.6f} " + " ".join(f"{v:.7f}" for v in (*p[:3, 3], *q))
         for t, p, q in zip(timestamps, poses, quats)

@@ -6,9 +6,8 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
-from ..camera import pinhole
+from ..camera import pinhole, quaternion_matrix, rotation_matrix, rotation_vector
 from ..errors import DatasetError
 from .images import file_reader
 from .sequence import RGBDSequence
@@ -127,8 +126,15 @@ def _interpolate_tum_groundtruth(path: Path, stamps: np.ndarray) -> np.ndarray:
     covered = (stamps >= t[0] - TUM_MAX_DT) & (stamps <= t[-1] + TUM_MAX_DT)
     at = np.clip(stamps, t[0], t[-1])
     poses = np.tile(np.eye(4), (len(stamps), 1, 1))
-    poses[:, :3, :3] = (Slerp(t, Rotation.from_quat(rows[:, 4:8]))(at).as_matrix() if len(t) > 1
-                        else Rotation.from_quat(rows[:1, 4:8]).as_matrix())
+    rotations = quaternion_matrix(np.roll(rows[:, 4:8], 1, axis=1))  # (x, y, z, w) -> (w, x, y, z)
+    if len(t) == 1:
+        poses[:, :3, :3] = rotations[0]
+    else:  # slerp between the lines a, b around each frame: R_a exp(s log(R_a^T R_b))
+        b = np.clip(np.searchsorted(t, at, side="right"), 1, len(t) - 1)
+        a = b - 1
+        s = (at - t[a]) / (t[b] - t[a])
+        step = rotation_vector(rotations[a].transpose(0, 2, 1) @ rotations[b])
+        poses[:, :3, :3] = rotations[a] @ rotation_matrix(s[:, None] * step)
     for k in range(3):
         poses[:, k, 3] = np.interp(at, t, rows[:, 1 + k])
     poses[~covered] = np.nan
