@@ -26,10 +26,9 @@ class HashGridEncoding(nn.Module):
     2^log2_table_size rows each, indexed by the spatial hash of the cell corners and
     interpolated by one fused gather (:class:`_HashedTrilinear`). On a CPU, the fused kernel of
     :mod:`~open3d_pnerf.fields.native` computes all levels at once (backend "auto" where it can
-    be built, "kernel" insisting; "torch": the PyTorch path, the kernel's reference). This is Instant-NGP's
-    encoding (its coarse levels are indexed densely too) laid out for speed on a CPU: with
-    8 levels up to 2048 it trains as fast per sample as the dense 16..192 grids
-    (benchmarks/bench_nerf.py). resolutions: the cells per axis of each level.
+    be built, "kernel" insisting; "torch": the PyTorch path, the kernel's reference). This is
+    Instant-NGP's encoding (its coarse levels are indexed densely too) laid out for speed on a
+    CPU. resolutions: the cells per axis of each level.
     """
 
     def __init__(

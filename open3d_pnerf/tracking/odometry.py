@@ -2,8 +2,8 @@
 
 ``o3d.t.pipelines.odometry.rgbd_odometry_multi_scale`` (hybrid photometric + geometric
 loss) estimates the transformation X that maps source-camera points into the target
-camera (``p_target = X @ p_source``; measured against TUM/7-Scenes ground truth:
-``X ~ inv(pose_target) @ pose_source`` for camera-to-world poses). Open3D reports
+camera (``p_target = X @ p_source``, so ``X ~ inv(pose_target) @ pose_source`` for
+camera-to-world poses). Open3D reports
 convergence but not whether the answer is right, so every result is checked: enough valid
 depth, a finite transformation, enough geometric overlap after alignment, and a plausible
 correction of the initial guess; and it carries its geometric residual and the covariance
@@ -44,10 +44,7 @@ class OdometryOptions:
     """A source point whose aligned 3D position lies within this distance of the target's
     point at the same pixel is a correspondence (overlap test and information matrix)."""
     min_overlap: float = 0.5
-    """Minimum fraction of the source's valid depth pixels that must find a correspondence.
-    Measured (3 cm): 0.72-0.95 for consecutive TUM / 7-Scenes frames, 0.34-0.88 for their
-    keyframe pairs; 7-Scenes every-10th-frame pairs (7 cm apart) that odometry gets wrong
-    by 3-30 cm: 0.1-0.82, about half of them below 0.5."""
+    """Minimum fraction of the source's valid depth pixels that must find a correspondence."""
     min_valid_depth: float = 0.05
     """Minimum fraction of pixels with valid depth (in (0, max_depth)) in both frames."""
     max_translation_m: float = 0.3
@@ -58,24 +55,20 @@ class OdometryOptions:
     """A registration whose point-to-plane residual RMS exceeds this many times the median of the
     sequence's accepted registrations so far is suspicious: the tracker tries other initial
     guesses and keeps the best fit (a wrong pose of a textured scene leaves residuals many times
-    those of the right ones; the 6 -> 7 failure of the synthetic room's seed 3 had 20x)."""
+    those of the right ones)."""
 
     search_all_above_m: float = 0.05
     """When the predicted motion from the last frame exceeds this (m) or search_all_above_deg,
     the tracker tries every initial guess (including the global registration) and keeps the
     best fit, even if the first passes: at such motions odometry can settle in a wrong minimum
-    with an unremarkable residual (the synthetic room at 40 frames per circuit, 22 cm and
-    16 degrees per frame, seed 3, frame 5: 47 mm off with a residual 1.2x the median, while the
-    global registration's start gave 0.3 mm and the lower residual)."""
+    with an unremarkable residual."""
     search_all_above_deg: float = 5.0
     """See search_all_above_m (degrees)."""
 
     misregistration_rad: float = 3e-3
     """How far (rad; translation: this angle times the median depth) a real sensor's registration
     stays off beyond what its residuals show: calibration, lens distortion, colour/depth timing,
-    rolling shutter. Added to every registration's covariance; 0 for a simulated sensor. Chosen
-    on 7-Scenes frames 150-199 (640x480; 3 mrad: NEES per dof 0.66 without and 1.88 with loop
-    closures) and reported with it fixed on TUM fr1/xyz (benchmarks/bench_tracking.py)."""
+    rolling shutter. Added to every registration's covariance; 0 for a simulated sensor."""
 
     def criteria(self) -> list:
         """Open3D convergence criteria, one per pyramid level."""

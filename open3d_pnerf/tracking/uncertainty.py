@@ -43,10 +43,8 @@ MAX_POINTS = 10_000  # pixels sampled per image (a regular grid)
 MIN_INLIERS = 200
 SENSOR = SensorNoise()  # the random depth noise that weighs each residual
 RESIDUAL_INFLATION = 1.3
-"""The sandwich covariance's standard deviations times this: on the synthetic room (exact truth,
-ten independent noise draws of frames 0-11 of a 300-frame circle, odometry only) the errors were
-1.3 times the predicted ones (NEES per dof 1.8): the sub-pixel association still leaves a bias
-that no residual shows. Checked on other draws in benchmarks/bench_tracking.py."""
+"""The sandwich covariance's standard deviations times this: the sub-pixel association leaves a
+bias that no residual shows."""
 JUMP = 0.05  # neighbouring depths further apart than this fraction of the depth: a discontinuity
 
 
