@@ -20,13 +20,17 @@ samples a step) unless stated. Sections, all in this one run, on `--threads` tor
    150 s), `--seeds` seeds each.
 
     python benchmarks/bench_speed.py [--threads 2] [--quality --seeds 2] [--quick]
+    python benchmarks/bench_speed.py --against REV --name speed_against_REV
 
-Writes benchmarks/results/<name>.json and <name>.md (name: speed).
+Writes benchmarks/results/<name>.json and <name>.md (name: speed). --against REV measures only
+this tree's training throughput and render time against the library at git revision REV (fresh
+processes taking turns), e.g. before and after a change of the kernel.
 """
 
 import argparse
 import json
 import platform
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -133,6 +137,52 @@ print("RESULT " + json.dumps(out))
 """
 
 
+AGAINST_SCRIPT = """
+import json, sys, time
+import numpy as np, torch
+import open3d_pnerf as pn
+from open3d_pnerf.camera import scale_intrinsic
+from open3d_pnerf.pipeline import run
+
+args = json.loads(sys.argv[1])
+torch.set_num_threads(args["threads"])
+seq = pn.load_sequence(args["data"]) if args["data"] != "sample" else pn.load_sample()
+poses, covs = np.load(args["poses"]), np.load(args["covariances"])
+cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, progress=False, time_budget_s=None, max_steps=args["steps"])
+recon = run(seq, cfg, poses, covs, export=False)
+t0 = time.perf_counter()
+recon.render(poses[1], scale_intrinsic(seq.intrinsic, 640 / seq.intrinsic.width))
+print("RESULT " + json.dumps({"samples_per_s": recon.stats["training"]["samples_per_s"],
+                              "render_640x480_s": round(time.perf_counter() - t0, 3)}))
+"""
+
+
+def against(revision: str, args: dict, rounds: int) -> dict:
+    """Training samples/s (a `fast` run of args["steps"] steps with the default config, no export)
+    and a 640x480 render's seconds of this tree and of the library at `revision`, each in a fresh
+    subprocess, taking turns for `rounds` rounds (the machine's speed swings hit both alike);
+    medians, and the median over rounds of the paired ratios (this tree's speed / revision's)."""
+    runs: dict[str, list] = {"this tree": [], revision: []}
+    with PreviousRelease(revision) as previous:
+        args = {**args, "poses": previous.save("poses", args.pop("poses")),
+                "covariances": previous.save("covariances", args.pop("covariances"))}
+        for _ in range(rounds):
+            runs[revision].append(previous.run(AGAINST_SCRIPT, args))
+            done = subprocess.run([sys.executable, "-c", AGAINST_SCRIPT, json.dumps(args)], capture_output=True,
+                                  text=True, cwd=Path(__file__).resolve().parents[1])
+            line = [ln for ln in done.stdout.splitlines() if ln.startswith("RESULT ")]
+            if done.returncode != 0 or not line:
+                raise RuntimeError(f"this tree failed: {done.stderr[-2000:]}")
+            runs["this tree"].append(json.loads(line[0][len("RESULT "):]))
+            print({name: r[-1] for name, r in runs.items()}, flush=True)
+    median = {name: {k: float(np.median([r[k] for r in rs])) for k in ("samples_per_s", "render_640x480_s")}
+              for name, rs in runs.items()}
+    pairs = list(zip(runs["this tree"], runs[revision]))
+    return {"revision": revision, "steps": args["steps"], "rounds": runs, "median": median,
+            "training_ratio": round(float(np.median([a["samples_per_s"] / b["samples_per_s"] for a, b in pairs])), 3),
+            "render_ratio": round(float(np.median([b["render_640x480_s"] / a["render_640x480_s"] for a, b in pairs])), 3)}
+
+
 def profile(trainer: Trainer, recon: Reconstruction, pose, steps: int) -> dict:
     """ms per step (and per 320x240 render) in each pnerf.* region, and the costliest operators."""
     from torch.profiler import ProfilerActivity, profile as torch_profile
@@ -227,6 +277,10 @@ def main():
     ap.add_argument("--seeds", type=int, default=2, help="seeds of the bf16 check and the quality runs")
     ap.add_argument("--short", type=float, default=50.0, help="training seconds of the default path's quality runs")
     ap.add_argument("--previous", default=PREVIOUS, help="git revision of the previous release to measure against")
+    ap.add_argument("--against", metavar="REV",
+                    help="only this: training and render speed of this tree against the library at git revision REV "
+                    "(fresh processes taking turns, --rounds rounds of --against-steps steps); writes <name>.json/md")
+    ap.add_argument("--against-steps", type=int, default=500, help="training steps of each --against run")
     ap.add_argument("--name", default="speed", help="stem of the result files in benchmarks/results/")
     ap.add_argument("--quick", action="store_true", help="a smoke test of the script: tiny everything")
     args = ap.parse_args()
@@ -246,6 +300,16 @@ def main():
               "data": f"{seq.name}, {len(seq)} frames, every 4th held out, 320x240 training images",
               "paths": PATHS, "default_path": {k: pn.ReconstructionConfig().to_dict()[k.split(".")[0]][k.split(".")[1]]
                                                for k in PATHS["pytorch"]}}
+    if args.against:
+        report["against"] = against(args.against, {"data": str(TUM) if TUM.is_dir() else "sample",
+                                                   "threads": args.threads, "steps": args.against_steps,
+                                                   "poses": poses, "covariances": covs}, args.rounds)
+        report["total_minutes"] = round((time.perf_counter() - t_start) / 60, 1)
+        OUT.mkdir(exist_ok=True)
+        (OUT / f"{args.name}.json").write_text(json.dumps(report, indent=1))
+        (OUT / f"{args.name}.md").write_text(against_markdown(report))
+        print(against_markdown(report))
+        return
     previous = PreviousRelease(args.previous)
     common = {"data": str(TUM) if TUM.is_dir() else "sample", "threads": args.threads,
               "poses": previous.save("poses", poses), "covariances": previous.save("covariances", covs)}
@@ -304,6 +368,22 @@ def main():
     (OUT / f"{args.name}.json").write_text(json.dumps(report, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(report))
     print(markdown(report))
+
+
+def against_markdown(r: dict) -> str:
+    a, name = r["against"], r["against"]["revision"]
+    m = a["median"]
+    lines = [f"# Speed against {name} (`python benchmarks/bench_speed.py --against {name} --name ...`)", "",
+             f"Data: {r['data']}; {r['machine']['threads']} threads; {r['total_minutes']} min in all. Each run: a fresh "
+             f"process, the default config (`fast`), {a['steps']} training steps without export, then a 640x480 render; "
+             f"this tree and {name} take turns, {len(a['rounds'][name])} rounds; medians.", "",
+             "| library | training samples/s | 640x480 render (s) | samples/s of each round |", "| --- | --- | --- | --- |"]
+    for who in ("this tree", name):
+        lines.append(f"| {who} | {m[who]['samples_per_s']:,.0f} | {m[who]['render_640x480_s']:.3f} | "
+                     + ", ".join(f"{x['samples_per_s']:,.0f}" for x in a["rounds"][who]) + " |")
+    lines += ["", f"Median over the rounds of this tree's speed over {name}'s in the same round: training "
+              f"{a['training_ratio']} x, 640x480 render {a['render_ratio']} x."]
+    return "\n".join(lines) + "\n"
 
 
 def markdown(r: dict) -> str:
