@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -369,20 +370,40 @@ FALLBACK = (
 )
 
 
-def put_a_broken_library_in_the_cache(tmp_path) -> None:
-    """A corrupt build of this kernel in the cache: a library the loader cannot open (as one whose
-    OpenMP runtime is missing)."""
+def cached_library(tmp_path) -> Path:
+    """Where this kernel's built library lies in the fresh cache of :func:`run_isolated`."""
     where = run_isolated("from open3d_pnerf.fields import native; print(native.build_directory())", tmp_path)
     folder = Path(where.stdout.strip())
     folder.mkdir(parents=True)
-    (folder / f"{native.NAME}.so").write_bytes(b"\x7fELF truncated")
+    return folder / f"{native.NAME}.so"
+
+
+def put_a_corrupt_library_in_the_cache(tmp_path) -> None:
+    """A build of this kernel cut short: a file the dynamic loader cannot open."""
+    cached_library(tmp_path).write_bytes(b"\x7fELF truncated")
+
+
+def put_a_library_whose_runtime_is_gone_in_the_cache(tmp_path) -> None:
+    """A library built against a shared runtime (an OpenMP library, say) that this machine no longer
+    has: the loader refuses it, naming the missing library."""
+    runtime = tmp_path / "runtime"
+    runtime.mkdir()
+    source = runtime / "gone.c"
+    source.write_text("int gone_runtime(void) { return 1; }\n")
+    subprocess.run(["cc", "-shared", "-fPIC", str(source), "-o", str(runtime / "libgone_omp.so")], check=True)
+    source.write_text("int gone_runtime(void);\nint uses_it(void) { return gone_runtime(); }\n")
+    subprocess.run(["cc", "-shared", "-fPIC", str(source), f"-L{runtime}", "-lgone_omp", "-o",
+                    str(cached_library(tmp_path))], check=True)
+    shutil.rmtree(runtime)
 
 
 @pytest.mark.parametrize("case, cause", [
     ("no compiler", "no C++ compiler found"),
     ("a cache that cannot be written", "Not a directory"),
     ("a compiler that fails", "error: no OpenMP"),
-    ("a library that does not load", "OSError"),
+    ("a corrupt library", "OSError"),
+    pytest.param("a missing runtime", "libgone_omp.so: cannot open shared object file",
+                 marks=pytest.mark.skipif(shutil.which("cc") is None, reason="needs a C compiler to build the case")),
 ])
 def test_every_build_or_load_failure_falls_back_to_pytorch_with_one_warning_naming_the_cause(case, cause, tmp_path):
     env = {}
@@ -395,13 +416,25 @@ def test_every_build_or_load_failure_falls_back_to_pytorch_with_one_warning_nami
         compiler.write_text('#!/bin/sh\n[ "$1" = --version ] && exec g++ --version\necho "error: no OpenMP" >&2; exit 1\n')
         compiler.chmod(0o755)
         env = {"CXX": str(compiler)}
+    elif case == "a corrupt library":
+        put_a_corrupt_library_in_the_cache(tmp_path)
     else:
-        put_a_broken_library_in_the_cache(tmp_path)
+        put_a_library_whose_runtime_is_gone_in_the_cache(tmp_path)
     run = run_isolated(FALLBACK, tmp_path, **env)
     assert run.returncode == 0, run.stderr
     count, message = run.stdout.strip().split("\n", 1)
     assert count == "1", run.stdout  # one warning, once
     assert cause in message, message
+
+
+def test_the_kernel_builds_with_the_ninja_package_when_none_is_on_path(tmp_path, monkeypatch):
+    """cpp_extension runs `ninja` from PATH; a virtual environment that is not activated has the
+    ninja package's executable off PATH: the build puts it there, and only while it builds."""
+    monkeypatch.setenv("PATH", str(tmp_path))
+    with native._ninja_on_path():
+        found = shutil.which("ninja")
+        assert found is not None and subprocess.run([found, "--version"], capture_output=True).returncode == 0
+    assert os.environ["PATH"] == str(tmp_path)
 
 
 def test_pnerf_native_0_turns_the_kernel_off_without_a_warning(tmp_path):

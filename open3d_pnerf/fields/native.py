@@ -102,7 +102,8 @@ def unavailable_reason() -> str | None:
     try:
         _build_and_load()
     except Exception as exc:  # compiler, ninja, file system and loader errors alike: the kernel is optional
-        message = " ".join(str(exc).split())
+        cause = f" ({exc.__cause__})" if exc.__cause__ is not None else ""  # what the loader said, under torch's words
+        message = " ".join(f"{exc}{cause}".split())
         if len(message) > 600:  # a compiler's output: its command line first, the error last
             message = f"{message[:200]} ... {message[-400:]}"
         return f"{type(exc).__name__}: {message}"
