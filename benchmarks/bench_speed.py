@@ -40,6 +40,7 @@ import torch
 
 import open3d_pnerf as pn
 from open3d_pnerf.batches import RayBatcher
+from open3d_pnerf.config import overrides as config_overrides
 from open3d_pnerf.evaluation import heldout_scores
 from open3d_pnerf.fields import native
 from open3d_pnerf.model import build_model
@@ -148,7 +149,8 @@ args = json.loads(sys.argv[1])
 torch.set_num_threads(args["threads"])
 seq = pn.load_sequence(args["data"]) if args["data"] != "sample" else pn.load_sample()
 poses, covs = np.load(args["poses"]), np.load(args["covariances"])
-cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, progress=False, time_budget_s=None, max_steps=args["steps"])
+cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, progress=False, time_budget_s=None, max_steps=args["steps"],
+                                     **args["overrides"])
 recon = run(seq, cfg, poses, covs, export=False)
 t0 = time.perf_counter()
 recon.render(poses[1], scale_intrinsic(seq.intrinsic, 640 / seq.intrinsic.width))
@@ -178,7 +180,7 @@ def against(revision: str, args: dict, rounds: int) -> dict:
     median = {name: {k: float(np.median([r[k] for r in rs])) for k in ("samples_per_s", "render_640x480_s")}
               for name, rs in runs.items()}
     pairs = list(zip(runs["this tree"], runs[revision]))
-    return {"revision": revision, "steps": args["steps"], "rounds": runs, "median": median,
+    return {"revision": revision, "steps": args["steps"], "overrides": args["overrides"], "rounds": runs, "median": median,
             "training_ratio": round(float(np.median([a["samples_per_s"] / b["samples_per_s"] for a, b in pairs])), 3),
             "render_ratio": round(float(np.median([b["render_640x480_s"] / a["render_640x480_s"] for a, b in pairs])), 3)}
 
@@ -281,6 +283,8 @@ def main():
                     help="only this: training and render speed of this tree against the library at git revision REV "
                     "(fresh processes taking turns, --rounds rounds of --against-steps steps); writes <name>.json/md")
     ap.add_argument("--against-steps", type=int, default=500, help="training steps of each --against run")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --against: a config override of both sides' runs, e.g. field=grid (repeatable)")
     ap.add_argument("--name", default="speed", help="stem of the result files in benchmarks/results/")
     ap.add_argument("--quick", action="store_true", help="a smoke test of the script: tiny everything")
     args = ap.parse_args()
@@ -303,7 +307,8 @@ def main():
     if args.against:
         report["against"] = against(args.against, {"data": str(TUM) if TUM.is_dir() else "sample",
                                                    "threads": args.threads, "steps": args.against_steps,
-                                                   "poses": poses, "covariances": covs}, args.rounds)
+                                                   "overrides": config_overrides(args.set), "poses": poses,
+                                                   "covariances": covs}, args.rounds)
         report["total_minutes"] = round((time.perf_counter() - t_start) / 60, 1)
         OUT.mkdir(exist_ok=True)
         (OUT / f"{args.name}.json").write_text(json.dumps(report, indent=1))
@@ -375,7 +380,8 @@ def against_markdown(r: dict) -> str:
     m = a["median"]
     lines = [f"# Speed against {name} (`python benchmarks/bench_speed.py --against {name} --name ...`)", "",
              f"Data: {r['data']}; {r['machine']['threads']} threads; {r['total_minutes']} min in all. Each run: a fresh "
-             f"process, the default config (`fast`), {a['steps']} training steps without export, then a 640x480 render; "
+             f"process, the default config (`fast`){''.join(f', {k}={v}' for k, v in a['overrides'].items())}, "
+             f"{a['steps']} training steps without export, then a 640x480 render; "
              f"this tree and {name} take turns, {len(a['rounds'][name])} rounds; medians.", "",
              "| library | training samples/s | 640x480 render (s) | samples/s of each round |", "| --- | --- | --- | --- |"]
     for who in ("this tree", name):
