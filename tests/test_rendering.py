@@ -291,7 +291,10 @@ def test_composite_colour_is_the_weighted_sum():
 # -- render_rays on an analytic field ------------------------------------------------------------
 class SlabField:
     """Density `value` for world z in [z0, z0 + thickness], zero elsewhere; constant colour.
-    Records the number of points of every encoding, and of them the encodings it was given."""
+    Records the number of points of every encoding, and of them the encodings it was given.
+    Trained as grid fields are: every sample of a step encoded in one call."""
+
+    encodes_in_one_pass = True
 
     def __init__(self, z0=1.5, thickness=0.01, value=1e4, color=(0.2, 0.5, 0.8)):
         self.z0, self.thickness, self.value = z0, thickness, value
@@ -368,9 +371,12 @@ def test_render_rays_finds_an_opaque_slab(with_targets):
     assert coarse.weights.shape == (len(rays), sampling.n_coarse)
     assert (z_of(rays, coarse.depth) - 1.2).abs().max() < 0.02
     # the coarse samples are encoded (to place the others), then every sample in one call that is
-    # given the coarse encodings to reuse
+    # given the coarse encodings to reuse; a render (no gradient) never encodes the coarse ones again
     n_coarse = len(rays) * sampling.n_coarse
     assert field.calls == [(n_coarse, 0), (len(rays) * n_total, n_coarse)]
+    with torch.no_grad():
+        render_rays(field, rays, sampling, mean, sigma, g, with_coarse=True)
+    assert field.calls[2:] == [(n_coarse, 0)]
     if with_targets:
         has = torch.isfinite(mean)
         inside = (fine.t - mean[:, None]).abs() <= 3 * sigma[:, None] + 1e-6

@@ -43,6 +43,11 @@ class Field(nn.Module):
     activations and parameters stay float32): about twice as fast on CPUs with bf16 instructions.
     """
 
+    encodes_in_one_pass = False
+    """Whether training encodes every sample of a step in one call: for fields whose encoding's
+    gradient is one dense tensor (grids), written once per step that way (see
+    rendering.volume.render_rays)."""
+
     def __init__(self, aabb: torch.Tensor, bf16: bool = False):
         super().__init__()
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3))
@@ -93,6 +98,8 @@ class EncodedField(Field):
 
     density = exp(MLP_sigma(enc(x))[0]); colour = sigmoid(MLP_rgb(geo_features, PE(d))).
     """
+
+    encodes_in_one_pass = True
 
     def __init__(self, aabb, encoding: nn.Module, hidden: int = 64, geo_features: int = 15, bf16: bool = False):
         super().__init__(aabb, bf16)

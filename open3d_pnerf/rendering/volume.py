@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import torch
@@ -80,10 +81,12 @@ def render_rays(
     The coarse samples' densities, computed without gradient, place the fine samples: importance
     samples drawn from them and, on rays with a depth target (target_mean / target_sigma (R,)
     ray-distance Gaussians, NaN where none), n_guided samples in mean +- 3 sigma (the other rays
-    get extra importance samples). With gradient, every sample, fine and coarse, is then encoded
-    in one call of the field (the coarse encodings are reused), so that a training step writes
-    the grid's gradient once, and the field's heads run on each set; without (renders), the fine
-    samples are evaluated and the coarse ones keep their values. The fine render composites the union
+    get extra importance samples). When training a field whose ``encodes_in_one_pass`` is set (a
+    grid's gradient is one dense tensor), the coarse pass runs without gradient and every sample,
+    fine and coarse, is then encoded in one call of the field (the coarse encodings are reused),
+    so that a step writes the grid's gradient once, and the field's heads run on each set;
+    otherwise (renders, MLP fields) the fine samples are evaluated and the coarse ones keep the
+    values of the coarse pass. The fine render composites the union
     of the samples; with_coarse: also the coarse samples alone, from the same values (the paper's
     coarse loss terms, at no extra field evaluation). Colour is evaluated at every sample, or,
     with color_min_weight > 0 (renders for viewing), only where a sample's weight reaches it (a
@@ -95,10 +98,11 @@ def render_rays(
         t_c = stratified(rays, sampling.n_coarse, generator, jitter)
         e_c = bin_edges(t_c, rays.near, rays.far)
         x_c = _points(rays, t_c)
-        with torch.no_grad():
+        one_pass = torch.is_grad_enabled() and getattr(field, "encodes_in_one_pass", False)
+        with torch.no_grad() if one_pass else contextlib.nullcontext():
             encoded_c = field.encode(x_c)
             sigma_c, features_c = field.geometry(x_c, encoded_c)
-        w_c = render_weights(sigma_c.view_as(t_c), e_c)
+        w_c = render_weights(sigma_c.detach().view_as(t_c), e_c)
     with record_function("pnerf.resample"):
         t_f = importance(e_c, w_c, sampling.n_fine + sampling.n_guided, generator, jitter)
         if target_mean is not None and sampling.n_guided > 0:
@@ -111,10 +115,10 @@ def render_rays(
             t_f = torch.where(has[:, None], t_own, t_f)
     with record_function("pnerf.fine_field"):
         x_f = _points(rays, t_f)
-        if torch.is_grad_enabled():  # every sample in one encoding call (fine ones first, as the gradient sums)
+        if one_pass:  # every sample in one encoding call (fine ones first, as the gradient sums)
             encoded = field.encode(torch.cat([x_f, x_c]), known=encoded_c).split([len(x_f), len(x_c)])
             (sigma_f, features_f), (sigma_c, features_c) = (field.geometry(x, e) for x, e in zip((x_f, x_c), encoded))
-        else:  # a render: the coarse samples keep the values of the pass above
+        else:  # the coarse samples keep the values of the pass above
             sigma_f, features_f = field.geometry(x_f)
         t, order = merge(t_c, t_f)
         sigma = torch.cat([sigma_c.view_as(t_c), sigma_f.view_as(t_f)], 1).gather(1, order)
