@@ -1,33 +1,27 @@
-"""The map against Open3D TSDF fusion: mesh accuracy and completeness, held-out depth, and
-whether the depth sigma holds as an error bar.
+"""The map against the sensor alone and Open3D TSDF fusion, fairly: the same frames, poses,
+resolution, extraction threshold and pixels (open3d_pnerf.compare_with_tsdf).
 
-Per dataset and loss (pnerf, dsnerf, photometric: the same configuration, the `fast` preset,
-ground-truth poses, every 4th frame held out, 320x240), one run:
-  * the exported mesh, fused with the sensor depth (what reconstruct() writes; with pnerf also
-    with the model's depth kept in the sensor's holes only where its sigma is at most
-    --fill-std, and with export.mesh_min_views 2), and the model-only mesh (the same export
-    without the sensor), against the TSDF mesh Open3D fuses from the same training frames and
-    poses: accuracy, completeness, F@20/50 mm against the
-    exact surface (synthetic room); on every held-out frame, each mesh ray-cast at the
-    held-out pose: depth L1 on its hits and the share of the sensor's pixels it covers;
-  * the field's own held-out renders: depth L1 over every pixel with sensor depth, and the
-    shares of errors within the central 68.3/95.4/99.7% intervals of the calibrated error law
-    with its negative log-likelihood, for the default Student-t law and a Gaussian one (both
-    fitted on training frames only);
-  * export time against training time.
-Datasets: synthetic (the room of bench_suite.py: 10 training views, and all 36 with pnerf only), tum (TUM
-fr1/xyz, all 24 training frames), 7scenes (redkitchen 150-199, all 38 training frames).
+Per dataset, loss and seed (the `fast` preset, ground-truth poses, every 4th frame held out,
+320x240), one run scored by compare_with_tsdf: the field's own renders, the exported mesh (the
+sensor's depth fused with the model's), the sensor alone (the same export without the model),
+Open3D's TSDF at the exported mesh's threshold and at its default one; on the held-out frames,
+depth and colour on the pixels every method covers, on each method's own hits and where only the
+model covers (with the share of the errors inside its 99.7% interval there); accuracy,
+completeness and F-scores against the exact surface (synthetic room only). Beside them the
+model-only mesh (the export without the sensor: the neural surface's own geometry).
+Datasets: synthetic (the room of bench_suite.py: 10 training views), synthetic_all (all 36 views,
+pnerf only), tum (TUM fr1/xyz, 24 training frames), 7scenes (redkitchen 150-199, 38 training
+frames). The targets of the fair comparison are checked per seed at the end.
 
-    python benchmarks/bench_map.py [--datasets synthetic,synthetic_all,tum,7scenes] [--losses pnerf,dsnerf,photometric]
-                                   [--set objective.weights.distortion=0.1 ...] (config overrides of every run)
+    python benchmarks/bench_map.py [--datasets synthetic,synthetic_all,tum,7scenes] [--losses pnerf,photometric]
+                                   [--seeds 0,1,2] [--set field=sdf ...] (config overrides of every run) [--name map]
 
-Writes benchmarks/results/<name>.json and <name>.md (name: map).
+Writes benchmarks/results/<name>.json and <name>.md.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import multiprocessing
 import time
@@ -40,137 +34,150 @@ from open3d_pnerf.config import overrides as config_overrides
 
 VIEWS = {"synthetic": 10, "synthetic_all": 0, "tum": 0, "7scenes": 0}  # training views (0 = all)
 MESH_ONLY = {"synthetic_all"}  # datasets run with pnerf only (the all-views mesh against the TSDF's)
-
-
-def mesh_on_heldout(mesh, recon, sequence) -> dict:
-    """Ray-cast `mesh` at every held-out pose (training resolution): depth L1 (m) on the
-    pixels it hits that have sensor depth, and the share of sensor pixels it hits."""
-    from open3d_pnerf.raycast import MeshRaycaster
-
-    caster = MeshRaycaster(mesh)
-    seq = sequence.select(recon.holdout_indices).scaled_by(recon.config.image_scale)
-    (h, w), errors, covered, sensor = seq.image_size, [], 0, 0
-    for k, i in enumerate(recon.holdout_indices):
-        depth = seq[k].depth
-        out = caster.render(recon.poses[i], seq.K, w, h)
-        both = out["hit"] & (depth > 0)
-        errors.append(np.abs(out["depth"] - depth)[both])
-        covered, sensor = covered + both.sum(), sensor + (depth > 0).sum()
-    err = np.concatenate(errors)
-    return {"depth_l1": float(err.mean()) if err.size else float("nan"), "coverage": float(covered / max(sensor, 1))}
-
-
-def export_with(recon, sequence, **export):
-    """The fused mesh of `recon` exported with these ExportConfig fields changed."""
-    from open3d_pnerf.export import export_geometry
-
-    return export_geometry(recon, sequence, dataclasses.replace(recon.config.export, **export), progress=False).mesh
+COLUMNS = [  # label, key, factor, format
+    ("acc. (mm)", "accuracy", 1000, ".1f"), ("compl. (mm)", "completeness", 1000, ".1f"),
+    ("F@20mm", "fscore_20mm", 1, ".3f"), ("F@50mm", "fscore_50mm", 1, ".3f"),
+    ("depth L1 common (mm)", "depth_l1_common", 1000, ".1f"), ("common share", "common_share", 1, ".3f"),
+    ("depth L1 own hits (mm)", "depth_l1_hits", 1000, ".1f"), ("coverage", "coverage", 1, ".3f"),
+    ("depth L1 model only (mm)", "depth_l1_only", 1000, ".1f"), ("model-only share", "only_share", 1, ".3f"),
+    ("99.7% interval holds (model only)", "within_3_only", 1, ".3f"),
+    ("PSNR (dB)", "psnr", 1, ".2f"), ("PSNR common (dB)", "psnr_common", 1, ".2f")]
 
 
 def run_one(spec: dict) -> dict:
-    """Train one (dataset, loss), export fused and model-only, compare with the TSDF."""
+    """Train one (dataset, loss, seed) and compare it fairly with the sensor alone and the TSDF."""
     import torch
 
     torch.set_num_threads(spec["threads"])
     import open3d_pnerf as pn
     from open3d_pnerf import compare_with_tsdf
-    from open3d_pnerf.evaluation import geometry_metrics, heldout_scores
+    from open3d_pnerf.evaluation import geometry_metrics, heldout_views, score_views
     from open3d_pnerf.export import export_geometry
 
     seq, reference = load(spec["source"], Path(spec["cache"]))
     poses, covs = poses_for(spec["source"], seq, "gt", Path(spec["cache"]))
-    cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=4, train_views=VIEWS[spec["dataset"]], loss=spec["loss"],
-                                         seed=spec["seed"], progress=False, **spec["overrides"])
+    cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=4, train_views=VIEWS[spec["dataset"]],
+                                         loss=spec["loss"], seed=spec["seed"], progress=False, **spec["overrides"])
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
-    comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
-    meshes = {"fused": recon.mesh, "tsdf": comparison.tsdf.mesh()}
-    if spec["loss"] == "pnerf":  # variants of the fused export
-        for std in spec["fill_std"]:  # the model's depth kept in the sensor's holes only where this confident
-            meshes[f"fused, fill sigma <= {1000 * std:g} mm"] = export_with(recon, seq, max_point_std=std)
-        meshes["fused, seen in >= 2 views"] = export_with(recon, seq, mesh_min_views=2)  # seen by two export views
     t0 = time.perf_counter()
-    meshes["model_only"] = export_geometry(recon, progress=False).mesh  # the same export without the sensor
-    model_only_export_s = time.perf_counter() - t0
-    out = {k: spec[k] for k in ("dataset", "loss", "seed")}
-    out["views"] = len(recon.train_indices)
-    out["field"] = {k: comparison.table["model"][k] for k in ("psnr", "ssim", "depth_l1", "within_1", "within_2",
-                                                               "within_3", "nll")}
-    out["tsdf_field_like"] = {k: comparison.table["tsdf"][k] for k in ("depth_l1", "hit_fraction")}
-    out["meshes"] = {}
-    for name, mesh in meshes.items():
-        if mesh is None or not mesh.has_triangles():  # no confident surface (e.g. colour only, model-only export)
-            out["meshes"][name] = {"depth_l1": float("nan"), "coverage": 0.0}
-            continue
-        entry = mesh_on_heldout(mesh, recon, seq)
+    comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
+    compare_s = time.perf_counter() - t0
+    table = comparison.table
+    model_only = export_geometry(recon, progress=False).mesh  # the export without the sensor
+    if model_only.has_triangles():
+        views = heldout_views(recon, seq, {"model_only": model_only})
+        row = score_views(views, cfg.export.min_opacity, common_of=["model"])["model_only"]  # its own hits
         if reference is not None:
-            g = geometry_metrics(mesh, reference)
-            entry.update({k: g[k] for k in ("accuracy", "completeness", "fscore_20mm", "fscore_50mm")})
-        out["meshes"][name] = {k: round(v, 5) for k, v in entry.items()}
-    out["calibration"] = {"scale": recon.depth_sigma_scale, "floor": recon.depth_sigma_floor,
-                          "dof": None if np.isinf(recon.depth_sigma_dof) else recon.depth_sigma_dof}
-    # the same model with a Gaussian error law (fitted the same way, on the same training pixels)
-    recon.calibrate_depth_sigma(seq, method="gaussian")
-    gaussian = heldout_scores(recon, seq)["model"]
-    out["field_gaussian"] = {k: gaussian[k] for k in ("within_1", "within_2", "within_3", "nll")}
-    out["calibration_gaussian"] = {"scale": recon.depth_sigma_scale, "floor": recon.depth_sigma_floor}
-    out["train_s"] = recon.stats["training"]["seconds"]
-    out["export_s"] = recon.stats["timings"]["export_s"]
-    out["model_only_export_s"] = round(model_only_export_s, 2)
+            row.update(geometry_metrics(model_only, reference))
+        table["model_only"] = {k: round(v, 5) for k, v in row.items()}
+    return {**{k: spec[k] for k in ("dataset", "loss", "seed")}, "views": len(recon.train_indices), "table": table,
+            "mesh_triangles": len(recon.mesh.triangles), "train_s": recon.stats["training"]["seconds"],
+            "steps": recon.stats["training"]["steps"], "export_s": recon.stats["timings"]["export_s"],
+            "compare_s": round(compare_s, 1)}
+
+
+def mean_table(runs: list[dict]) -> dict:
+    """{method: {metric: (mean, min, max)}} over the runs (seeds) of one dataset and loss."""
+    methods = {m: None for r in runs for m in r["table"]}
+    out = {}
+    for m in methods:
+        keys = {k for r in runs for k in r["table"].get(m, {})}
+        out[m] = {k: (float(np.mean(v)), float(np.min(v)), float(np.max(v)))
+                  for k in keys if (v := [r["table"][m][k] for r in runs if k in r["table"].get(m, {})])}
+    return out
+
+
+def checks(runs: list[dict]) -> list[tuple[str, str, list[bool]]]:
+    """The fair comparison's targets: (dataset, target, passed per seed) for the runs present."""
+    by = {}
+    for r in runs:
+        by.setdefault((r["dataset"], r["loss"]), {})[r["seed"]] = r["table"]
+    out = []
+
+    def check(dataset, text, test, loss="pnerf"):
+        seeds = by.get((dataset, loss), {})
+        if seeds:
+            out.append((dataset, text, [bool(test(t, s)) for s, t in sorted(seeds.items())]))
+
+    check("synthetic", "mesh accuracy no worse than the sensor alone's",
+          lambda t, s: t["mesh"]["accuracy"] <= t["sensor"]["accuracy"])
+    check("synthetic", "mesh completeness at most half the sensor alone's",
+          lambda t, s: t["mesh"]["completeness"] <= 0.5 * t["sensor"]["completeness"])
+    check("synthetic", "mesh F@20mm at least the sensor alone's + 0.05",
+          lambda t, s: t["mesh"]["fscore_20mm"] >= t["sensor"]["fscore_20mm"] + 0.05)
+    for key in ("accuracy", "completeness"):
+        check("synthetic_all", f"mesh {key} better than the TSDF's (same threshold)",
+              lambda t, s, k=key: t["mesh"][k] < t["tsdf"][k])
+    check("synthetic_all", "mesh F@20mm better than the TSDF's", lambda t, s: t["mesh"]["fscore_20mm"] > t["tsdf"]["fscore_20mm"])
+    for d in ("tum", "7scenes"):
+        check(d, "model depth on common pixels no worse than the TSDF's",
+              lambda t, s: t["model"]["depth_l1_common"] <= t["tsdf"]["depth_l1_common"])
+        check(d, "mesh depth on common pixels at most 0.8x the TSDF's",
+              lambda t, s: t["mesh"]["depth_l1_common"] <= 0.8 * t["tsdf"]["depth_l1_common"])
+        check(d, "mesh depth on its hits no worse than the TSDF's on its hits",
+              lambda t, s: t["mesh"]["depth_l1_hits"] <= t["tsdf"]["depth_l1_hits"])
+        check(d, "mesh holes at most 1% of the sensor's pixels", lambda t, s: t["mesh"]["coverage"] >= 0.99)
+        check(d, "model-only pixels: at least 99% of errors inside the 99.7% interval",
+              lambda t, s: t["model"].get("within_3_only", 1.0) >= 0.99)
+        colour_only = by.get((d, "photometric"), {})
+        check(d, "held-out PSNR at least colour-only training's (same seed)",
+              lambda t, s: s in colour_only and t["model"]["psnr"] >= colour_only[s]["model"]["psnr"])
     return out
 
 
 def markdown(results: list[dict], meta: dict) -> str:
-    lines = [f"`{meta['preset']}` preset, GT poses, every 4th frame held out, 320x240, seed {meta['seed']}; {meta['threads']} "
-             f"thread(s) per run, {meta['jobs']} at once; {meta['wall_minutes']} min in all; {meta['machine']}."
-             + "".join(f" {k}={v}" for k, v in meta.get("overrides", {}).items()), "",
-             "Meshes (held-out frames: each mesh ray-cast at the held-out poses; acc./compl./F against the exact "
-             "surface, synthetic only):", "",
-             "| dataset | views | loss | mesh | acc. (mm) | compl. (mm) | F@20mm | F@50mm | held-out depth L1 on hits (mm) "
-             "| sensor pixels covered |", "|" + " --- |" * 10]
-    mm = lambda d, k: f"{1000 * d[k]:.1f}" if k in d else "-"  # noqa: E731
-    f3 = lambda d, k: f"{d[k]:.3f}" if k in d else "-"  # noqa: E731
+    lines = [f"`{meta['preset']}` preset, GT poses, every 4th frame held out, 320x240, seeds {meta['seeds']}; "
+             f"{meta['threads']} thread(s) per run, {meta['jobs']} at once; {meta['wall_minutes']} min in all; "
+             f"{meta['machine']}." + "".join(f" {k}={v}" for k, v in meta.get("overrides", {}).items()), "",
+             "Each cell: the mean over the seeds (min..max). Held-out frames: depth L1 on the pixels every method "
+             "but the default-threshold TSDF covers (common), on each method's own hits, and where only the model "
+             "(or its mesh) covers, each with its share of the pixels with sensor depth; acc./compl./F against the "
+             "exact surface (synthetic only). The TSDF rows are Open3D's of the same training frames and poses.", ""]
+    labels = {"model": "model (renders)", "mesh": "exported mesh", "sensor": "sensor alone",
+              "tsdf": "TSDF, same threshold", "tsdf_default": "TSDF, Open3D default threshold",
+              "model_only": "model-only mesh"}
+    groups = {}
     for r in results:
-        for name, m in r["meshes"].items():
-            if name == "tsdf" and r["loss"] != "pnerf":
-                continue  # the same TSDF in every loss's run
-            label = "Open3D TSDF" if name == "tsdf" else name.replace("_", "-")
-            lines.append(f"| {r['dataset']} | {r['views']} | {r['loss'] if name != 'tsdf' else '-'} | {label} | "
-                         f"{mm(m, 'accuracy')} | {mm(m, 'completeness')} | {f3(m, 'fscore_20mm')} | "
-                         f"{f3(m, 'fscore_50mm')} | {mm(m, 'depth_l1')} | {m['coverage']:.3f} |")
-    lines += ["", "The field's own held-out renders, and its depth sigma as an error bar: the share of held-out "
-              "errors within the central 68.3 / 95.4 / 99.7% intervals of the calibrated law (what 1/2/3 sigma hold "
-              "for a Gaussian; a calibrated law gives those shares) and its negative log-likelihood (nats), for the "
-              "default Student-t law and a Gaussian one fitted the same way on the same training pixels; TSDF depth "
-              "L1 on its hits:", "",
-              "| dataset | views | loss | PSNR (dB) | depth L1 (mm) | TSDF depth L1 on hits (mm) | Student-t: 68.3% | "
-              "95.4% | 99.7% | NLL | Gaussian: 68.3% | 95.4% | 99.7% | NLL | sigma = sqrt((s spread)^2 + (f z)^2), "
-              "dof | train s | export s (fused) |", "|" + " --- |" * 18]
-    for r in results:
-        f, g, t, c = r["field"], r["field_gaussian"], r["tsdf_field_like"], r["calibration"]
-        dof = "Gaussian" if c["dof"] is None else f"{c['dof']:.3g} dof"
-        lines.append(f"| {r['dataset']} | {r['views']} | {r['loss']} | {f['psnr']:.2f} | {1000 * f['depth_l1']:.1f} | "
-                     f"{1000 * t['depth_l1']:.1f} | {f['within_1']:.3f} | {f['within_2']:.3f} | {f['within_3']:.3f} | "
-                     f"{f['nll']:.2f} | {g['within_1']:.3f} | {g['within_2']:.3f} | {g['within_3']:.3f} | "
-                     f"{g['nll']:.2f} | s {c['scale']:.3g}, f {100 * c['floor']:.2g}%, {dof} | {r['train_s']:.0f} | "
-                     f"{r['export_s']:.1f} ({100 * r['export_s'] / r['train_s']:.0f}%) |")
+        groups.setdefault((r["dataset"], r["loss"]), []).append(r)
+    for (dataset, loss), runs in groups.items():
+        table = mean_table(runs)
+        cols = [c for c in COLUMNS if any(c[1] in row for row in table.values())]
+        train = np.mean([r["train_s"] for r in runs])
+        lines += [f"### {dataset}, {runs[0]['views']} views, {loss} ({len(runs)} seeds, {train:.0f} s training, "
+                  f"{np.mean([r['steps'] for r in runs]):.0f} steps)", "",
+                  "| method | " + " | ".join(c[0] for c in cols) + " |", "|" + " --- |" * (len(cols) + 1)]
+        for method, row in table.items():
+            if loss != "pnerf" and method in ("sensor", "tsdf", "tsdf_default"):
+                continue  # the same in every loss's run
+            cells = []
+            for _, key, factor, fmt in cols:
+                if key not in row:
+                    cells.append("-")
+                    continue
+                mean, lo, hi = (factor * v for v in row[key])
+                cells.append(format(mean, fmt) + (f" ({lo:{fmt}}..{hi:{fmt}})" if len(runs) > 1 else ""))
+            lines.append(f"| {labels.get(method, method)} | " + " | ".join(cells) + " |")
+        lines.append("")
+    lines += ["### Targets", "", "| dataset | target | met in seeds |", "| --- | --- | --- |"]
+    for dataset, text, passed in checks(results):
+        lines.append(f"| {dataset} | {text} | {sum(passed)}/{len(passed)} |")
     return "\n".join(lines) + "\n"
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", default="synthetic,synthetic_all,tum,7scenes")
-    ap.add_argument("--losses", default="pnerf,dsnerf,photometric")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--losses", default="pnerf,photometric")
+    ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
     ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
     ap.add_argument("--preset", default="fast", help="'test': a smoke test of the script")
-    ap.add_argument("--fill-std", default="0.02,0.05",
-                    help="pnerf only: also export with the model's depth kept where its sigma is at most these (m)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a config override of every run, e.g. objective.weights.distortion=0.1 (repeatable)")
     ap.add_argument("--name", default="map")
     args = ap.parse_args()
     datasets, losses = args.datasets.split(","), args.losses.split(",")
+    seeds = [int(s) for s in args.seeds.split(",")]
     overrides = config_overrides(args.set)
     missing = [d for d in datasets if not d.startswith("synthetic") and not PATHS.get(d, SHARED / "?").is_dir()]
     if missing:
@@ -179,17 +186,14 @@ def main():
     cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     synthetic = prepare_synthetic(cache, False) if any(d.startswith("synthetic") for d in datasets) else None
-    specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else d, loss=loss, seed=args.seed,
-                  threads=args.threads, preset=args.preset, cache=str(cache),
-                  fill_std=[float(v) for v in args.fill_std.split(",") if v], overrides=overrides)
-             for d in datasets for loss in losses if d not in MESH_ONLY or loss == "pnerf"]
+    specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else d, loss=loss, seed=seed,
+                  threads=args.threads, preset=args.preset, cache=str(cache), overrides=overrides)
+             for seed in seeds for d in datasets for loss in losses if d not in MESH_ONLY or loss == "pnerf"]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
-        f"{r['dataset']:14s} {r['loss']:12s} fused {r['meshes']['fused']} tsdf {r['meshes']['tsdf']} "
-        f"field {r['field']}"))
-    meta = {"machine": machine(),
-            "seed": args.seed, "threads": args.threads, "jobs": args.jobs, "preset": args.preset, "fill_std": args.fill_std,
-            "overrides": overrides,
-            "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS}
+        f"{r['dataset']:14s} {r['loss']:12s} seed {r['seed']} mesh {r['table']['mesh']} "
+        f"sensor {r['table'].get('sensor')} tsdf {r['table'].get('tsdf')}"))
+    meta = {"machine": machine(), "seeds": seeds, "threads": args.threads, "jobs": args.jobs, "preset": args.preset,
+            "overrides": overrides, "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS}
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(results, meta))
     print((OUT / f"{args.name}.md").read_text())

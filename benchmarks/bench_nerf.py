@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 import open3d_pnerf as pn
-from open3d_pnerf.evaluation import heldout_scores
+from open3d_pnerf.evaluation import heldout_scores, heldout_views, score_views
 from open3d_pnerf.pipeline import run
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -82,8 +82,8 @@ def main():
         wall = time.perf_counter() - t
         if tsdf_scores is None:
             train = seq.select(recon.train_indices).scaled_by(cfg.image_scale)
-            volume = pn.tsdf_fusion(train, traj.poses[recon.train_indices], return_volume=True, progress=False)
-            tsdf_scores = heldout_scores(recon, seq, volume)["tsdf"]
+            tsdf = pn.tsdf_fusion(train, traj.poses[recon.train_indices], progress=False)
+            tsdf_scores = score_views(heldout_views(recon, seq, {"tsdf": tsdf}), cfg.export.min_opacity)["tsdf"]
         scores = heldout_scores(recon, seq)["model"]
         results[name] = {"scores": scores, "training": recon.stats["training"], "wall_s": round(wall, 1),
                          "mesh_triangles": len(recon.mesh.triangles), "points": len(recon.point_cloud.points)}

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 import open3d_pnerf as pn
-from open3d_pnerf.evaluation import heldout_renders, score_renders
+from open3d_pnerf.evaluation import heldout_scores
 from open3d_pnerf.synthetic import synthetic_sequence
 
 OUT = Path(__file__).resolve().parent / "results"
@@ -36,7 +36,7 @@ def run(data, field: str, refine: bool, budget: float) -> dict:
     train, hold = recon.train_indices, recon.holdout_indices
     ate = pn.absolute_trajectory_error(recon.poses[train], seq.gt_poses[train])
     recon.poses[hold] = np.linalg.inv(ate["alignment"]) @ seq.gt_poses[hold]
-    scores = score_renders(list(heldout_renders(recon, seq)))["model"]
+    scores = heldout_scores(recon, seq)["model"]
     return {"ate_rmse_mm": round(1000 * ate["rmse"], 1), "psnr": round(scores["psnr"], 2),
             "ssim": round(scores["ssim"], 3), "depth_l1_mm": round(1000 * scores["depth_l1"], 1),
             "steps": recon.stats["training"]["steps"]}

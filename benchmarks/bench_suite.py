@@ -156,6 +156,7 @@ def run_one(spec: dict) -> dict:
     tr = recon.stats["training"]
     return {**{k: spec[k] for k in ("dataset", "variant", "views", "poses")},
             "train_frames": len(recon.train_indices), "model": comparison.table["model"],
+            "mesh": comparison.table.get("mesh", {}),
             "tsdf": comparison.table.get("tsdf", {}), "wall_s": round(wall, 1), "compare_s": round(compare_s, 1),
             "timings": recon.stats["timings"], "targets": recon.stats["targets"], "steps": tr["steps"],
             "samples_per_s": round(tr["samples_per_s"]), "peak_rss_mb": round(_peak_rss_mb())}
@@ -185,18 +186,18 @@ def markdown(results: list[dict], meta: dict) -> str:
              "Held out: every 4th frame (fern: every 8th). Views: training frames (all = every non-held-out "
              "frame). '-': not measured (fern has no depth images, so no depth metrics and no TSDF).", ""]
     head = ("| dataset | run | views | poses | PSNR (dB) | SSIM | depth L1 (mm) | within 1σ | "
-            "acc. (mm) | compl. (mm) | F@20mm | F@50mm | TSDF PSNR (all / hits) | TSDF depth L1 (mm) | "
+            "mesh acc. (mm) | mesh compl. (mm) | mesh F@20mm | mesh F@50mm | TSDF PSNR (all / hits) | TSDF depth L1 (mm) | "
             "TSDF compl. (mm) | TSDF F@20mm | steps | samples/s | peak RSS (MB) |")
     lines += [head, "|" + " --- |" * (head.count("|") - 1)]
     for r in results:
-        m, t = r["model"], r["tsdf"]
+        m, t, e = r["model"], r["tsdf"], r["mesh"]
         g = lambda d, k, f=".3f": format(d[k], f) if k in d else "-"  # noqa: E731
         mm = lambda d, k: f"{1000 * d[k]:.1f}" if k in d else "-"  # noqa: E731
         tsdf_psnr = f"{t['psnr']:.2f} / {t['psnr_hits']:.2f}" if t else "-"
         lines.append(
             f"| {r['dataset']} | {r['variant']} | {r['views'] or 'all'} ({r['train_frames']}) | {r['poses']} | "
             f"{m['psnr']:.2f} | {m['ssim']:.3f} | {mm(m, 'depth_l1')} | {g(m, 'within_1', '.2f')} | "
-            f"{mm(m, 'accuracy')} | {mm(m, 'completeness')} | {g(m, 'fscore_20mm')} | {g(m, 'fscore_50mm')} | "
+            f"{mm(e, 'accuracy')} | {mm(e, 'completeness')} | {g(e, 'fscore_20mm')} | {g(e, 'fscore_50mm')} | "
             f"{tsdf_psnr} | {mm(t, 'depth_l1')} | {mm(t, 'completeness')} | "
             f"{g(t, 'fscore_20mm')} | {r['steps']} | {r['samples_per_s'] / 1000:.0f}k | {r['peak_rss_mb']} |")
     return "\n".join(lines) + "\n"
@@ -220,9 +221,9 @@ def sweep_figure(results: list[dict], path: Path) -> None:
         ax.set_xlabel("training views")
         ax.set_ylabel("held-out PSNR (dB)")
         ax.set_title(d)
-        if "fscore_20mm" in rows[0]["model"]:
+        if "fscore_20mm" in rows[0]["mesh"]:
             f = ax.twinx()
-            f.plot(n, [r["model"]["fscore_20mm"] for r in rows], "o:", color="C2", label="pnerf F@20mm")
+            f.plot(n, [r["mesh"]["fscore_20mm"] for r in rows], "o:", color="C2", label="pnerf mesh F@20mm")
             f.plot(n, [r["tsdf"]["fscore_20mm"] for r in rows], "s:", color="C3", label="TSDF F@20mm")
             f.set_ylabel("F-score @ 20 mm")
             f.legend(loc="lower right", fontsize=7)
@@ -280,7 +281,7 @@ def summary_line(r: dict) -> str:
             f"PSNR {m['psnr']:.2f} SSIM {m['ssim']:.3f}")
     if t:
         line += (f" (TSDF {t['psnr']:.2f}) depth L1 {1000 * m['depth_l1']:.1f} mm within1 {m['within_1']:.2f} "
-                 f"F@20 {m.get('fscore_20mm', float('nan')):.3f} (TSDF {t.get('fscore_20mm', float('nan')):.3f})")
+                 f"F@20 {r['mesh'].get('fscore_20mm', float('nan')):.3f} (TSDF {t.get('fscore_20mm', float('nan')):.3f})")
     return line + f" {r['wall_s']:.0f} s {r['peak_rss_mb']} MB"
 
 

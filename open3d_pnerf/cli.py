@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from ._files import atomic_write
-from .comparison import compare
+from .comparison import compare, scores_table
 from .config import ReconstructionConfig
 from .config import overrides as config_overrides
 from .data import load_sample, load_sequence, write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
@@ -32,7 +32,6 @@ from .fields import FIELD_CONFIGS
 from .losses import LOSSES
 from .pipeline import RUN_CONFIG, read_run_config, reconstruct_folder, resolve_poses
 from .reconstruction import Reconstruction
-from .report import scores_table
 from .tracking import absolute_trajectory_error
 from .tsdf import tsdf_fusion
 

@@ -12,10 +12,10 @@ from .camera import pixel_coordinates
 from .data.sequence import RGBDSequence, evenly_spaced
 from .error_law import GAUSSIAN_SHARES, depth_nll, sigma_multiple
 from .errors import InputError
-from .tsdf import TSDFVolume
+from .raycast import MeshRaycaster
 
-__all__ = ["GAUSSIAN_SHARES", "depth_calibration", "depth_errors", "depth_nll", "geometry_metrics", "heldout_renders",
-           "heldout_scores", "mse_to_psnr", "psnr", "score_renders", "sigma_multiple", "ssim", "training_depth_errors"]
+__all__ = ["GAUSSIAN_SHARES", "depth_calibration", "depth_errors", "depth_nll", "geometry_metrics", "heldout_scores",
+           "heldout_views", "mse_to_psnr", "psnr", "score_views", "sigma_multiple", "ssim", "training_depth_errors"]
 
 
 def mse_to_psnr(mse):
@@ -122,50 +122,119 @@ def geometry_metrics(pred, reference, thresholds=(0.02, 0.05), n_points: int = 2
     return out
 
 
-def heldout_renders(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = None, scale: float | None = None):
-    """Yield, per held-out frame of a Reconstruction, the inputs and both renders.
+def heldout_views(recon, sequence: RGBDSequence, surfaces: dict | None = None, scale: float | None = None):
+    """Yield, per held-out frame of a Reconstruction, the inputs and every method's render.
 
     Renders at the training resolution (or `scale` of the sequence). Each item is a dict:
-    index (frame), color (H, W, 3) in [0, 1] on the depth grid, depth (H, W) sensor z-depth
-    m, model (Reconstruction.render output at the frame's own exposure), depth_dof (the
-    degrees of freedom of its depth-error law), tsdf
-    (TSDFVolume.render output or None).
+    index (frame), color (H, W, 3) in [0, 1] on the depth grid, depth (H, W) sensor z-depth m
+    (0: none), model (Reconstruction.render output at the frame's own exposure), surfaces
+    {name: color, depth, hit} of each mesh in `surfaces` ({name: o3d.geometry.TriangleMesh})
+    ray-cast at the frame's pose.
     """
     scale = scale or recon.config.image_scale
-    seq = sequence.select(recon.holdout_indices)
-    seq = seq.scaled_by(scale)
+    seq = sequence.select(recon.holdout_indices).scaled_by(scale)
     K, (h, w) = seq.K, seq.image_size
+    casters = {name: MeshRaycaster(mesh) for name, mesh in (surfaces or {}).items()}
     for k, i in enumerate(recon.holdout_indices):
         frame = seq[k]
-        yield {
-            "index": int(i), "color": seq.color_on_depth_grid(frame.color) / 255.0, "depth": frame.depth,
-            "model": recon.render(recon.poses[i], seq.intrinsic, frame=int(i)), "depth_dof": recon.depth_error.dof,
-            "tsdf": None if tsdf is None else tsdf.render(recon.poses[i], K, w, h),
-        }
+        yield {"index": int(i), "color": seq.color_on_depth_grid(frame.color) / 255.0, "depth": frame.depth,
+               "model": recon.render(recon.poses[i], seq.intrinsic, frame=int(i)),
+               "surfaces": {name: caster.render(recon.poses[i], K, w, h) for name, caster in casters.items()}}
 
 
-def score_renders(renders) -> dict:
-    """{"model": {...}, "tsdf": {...}}: means over frames of image, depth and calibration
-    metrics (items as yielded by :func:`heldout_renders`). TSDF colour is scored over all
-    pixels ("psnr") and over the pixels its ray cast hits ("psnr_hits"). Without sensor depth
-    in any frame (image-only sequences) only image metrics are given."""
-    renders = list(renders)
-    with_depth = any(r["depth"].any() for r in renders)
-    rows: dict[str, list[dict]] = {"model": [], "tsdf": []}
-    for r in renders:
-        color, depth, out, t = r["color"], r["depth"], r["model"], r["tsdf"]
-        row = {"psnr": psnr(out["color"], color), "ssim": ssim(out["color"], color)}
-        if with_depth:
-            row.update({f"depth_{m}": v for m, v in depth_errors(out["depth"], depth).items()})
-            row.update(depth_calibration(out["depth"], out["depth_std"], depth, dof=r.get("depth_dof", np.inf)))
-        rows["model"].append(row)
-        if t is not None:
-            rows["tsdf"].append({
-                "psnr": psnr(t["color"], color), "psnr_hits": psnr(t["color"], color, t["hit"]),
-                "ssim": ssim(t["color"], color), "hit_fraction": float(t["hit"].mean()),
-                **{f"depth_{m}": v for m, v in depth_errors(t["depth"], depth, t["hit"]).items()},
-            })
-    return {name: _mean_rows(r) for name, r in rows.items() if r}
+def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, sensor_based=()) -> dict:
+    """Held-out scores of the model and each surface, pooled over the frames (items of
+    :func:`heldout_views`): {"model": {...}, name: {...} for each surface}.
+
+    The model covers a pixel where its opacity reaches `min_opacity`, a surface where its ray
+    cast hits. Pixel sets: each method's own hits, the "common" pixels that every method named in
+    `common_of` covers (default: all; scored for those methods only), and for those of them not in
+    `sensor_based`, the pixels each covers that no method in `sensor_based` covers ("only": what
+    the model alone fills). Keys (depth in m; shares of the pixels with sensor depth): psnr and ssim
+    (the whole frame, a surface's misses black; means over frames, the NeRF convention), psnr_hits
+    and psnr_common (of the squared errors pooled over the frames' pixels),
+    coverage, depth_l1 / depth_rmse / depth_rel / depth_pixels (the model: every pixel with
+    sensor depth; a surface: its hits), depth_l1_hits, depth_l1_common and common_share,
+    depth_l1_only and only_share; the model's depth calibration under its error law (`dof`
+    degrees of freedom): within_1..3 and nll over every pixel with sensor depth, within_3_only
+    over its "only" pixels. Without sensor depth (image-only sequences): colour only."""
+    views = list(views)
+    names = ["model", *views[0]["surfaces"]] if views else ["model"]
+    common_of = names if common_of is None else list(common_of)
+    with_depth = any(v["depth"].any() for v in views)
+    pools = {name: _Pool() for name in names}
+    for v in views:
+        gt, color, sensor = v["depth"], v["color"], v["depth"] > 0
+        out = {"model": v["model"], **v["surfaces"]}
+        covers = {"model": v["model"]["opacity"] >= min_opacity, **{n: s["hit"] for n, s in v["surfaces"].items()}}
+        every = np.ones_like(sensor)
+        common = np.logical_and.reduce([covers[n] for n in common_of])
+        by_sensor = np.logical_or.reduce([covers[n] for n in sensor_based]) if sensor_based else ~every
+        for name in names:
+            o, pool, main = out[name], pools[name], name in common_of
+            pool.color(o["color"], color, {"_hits": covers[name], **({"_common": common} if main else {})})
+            if not with_depth:
+                continue
+            sets = {"": every if name == "model" else covers[name], "_hits": covers[name]}
+            if main:
+                sets["_common"] = common
+            if main and name not in sensor_based:
+                sets["_only"] = covers[name] & ~by_sensor
+            pool.depth(o["depth"], gt, sensor, sets)
+            if name == "model":
+                pool.calibration(o["depth"], o["depth_std"], gt, sensor, sets.get("_only", ~every))
+    return {name: pool.scores(dof) for name, pool in pools.items()}
+
+
+class _Pool:
+    """Squared colour errors and absolute depth errors of several pixel sets, and the model's
+    depth with its sigma, gathered over frames (sums for means, arrays for errors and laws)."""
+
+    def __init__(self):
+        self.sums: dict[str, list] = {}
+        self.frames: dict[str, list[float]] = {"psnr": [], "ssim": []}  # whole-frame scores
+        self.depths: list[np.ndarray] = []  # (pred, gt) of the whole set: a surface's hits, the model's every pixel
+        self.law: dict[str, list[np.ndarray]] = {"": [], "_only": []}
+
+    def add(self, key: str, values: np.ndarray) -> None:
+        total = self.sums.setdefault(key, [0.0, 0])
+        total[0] += float(values.sum())
+        total[1] += int(values.size)
+
+    def color(self, pred, gt, sets: dict) -> None:
+        err = ((np.asarray(pred, np.float64) - gt) ** 2).mean(-1)
+        self.frames["psnr"].append(mse_to_psnr(err.mean()))
+        self.frames["ssim"].append(ssim(pred, gt))
+        for suffix, mask in sets.items():
+            self.add(f"psnr{suffix}", err[mask])
+
+    def depth(self, pred, gt, sensor, sets: dict) -> None:
+        for suffix, mask in sets.items():
+            self.add(f"depth_l1{suffix}", np.abs(pred - gt)[mask & sensor])
+            self.add(f"share{suffix}", (mask & sensor)[sensor])
+        whole = sets[""] & sensor
+        self.depths.append(np.stack([pred[whole], gt[whole]]))
+
+    def calibration(self, pred, std, gt, sensor, only) -> None:
+        for suffix, mask in (("", sensor), ("_only", only & sensor)):
+            self.law[suffix].append(np.stack([pred[mask], std[mask], gt[mask]]))
+
+    def scores(self, dof: float) -> dict:
+        mean = {k: total / count for k, (total, count) in self.sums.items() if count}
+        out = {k: mse_to_psnr(v) for k, v in mean.items() if k.startswith("psnr")}
+        out.update({k: float(np.mean(v)) for k, v in self.frames.items() if v})
+        if self.depths:
+            pred, gt = np.concatenate(self.depths, 1)
+            out.update({f"depth_{m}": v for m, v in depth_errors(pred, gt, np.ones_like(gt, bool)).items()})
+            out.update({k: v for k, v in mean.items() if k.startswith("depth_l1_")})
+            out["coverage"] = mean.get("share_hits", 0.0)
+            out.update({f"{name}_share": mean[f"share_{name}"] for name in ("common", "only") if f"share_{name}" in mean})
+        for suffix, rows in self.law.items():
+            pred, std, gt = np.concatenate(rows, 1) if rows else np.zeros((3, 0))
+            if pred.size:
+                law = depth_calibration(pred, std, gt, dof=dof)
+                out.update(law if not suffix else {f"within_3{suffix}": law["within_3"]})
+        return {k: round(float(v), 5) for k, v in out.items()}
 
 
 def training_depth_errors(recon, sequence: RGBDSequence, frames: int = 8,
@@ -192,13 +261,7 @@ def training_depth_errors(recon, sequence: RGBDSequence, frames: int = 8,
     return tuple(np.concatenate(a) if a else np.zeros(0) for a in (errors, spreads, depths))
 
 
-def heldout_scores(recon, sequence: RGBDSequence, tsdf: TSDFVolume | None = None, scale: float | None = None) -> dict:
-    """Score a Reconstruction (and optionally a TSDF volume) on its held-out frames:
-    :func:`score_renders` of :func:`heldout_renders`."""
-    return score_renders(heldout_renders(recon, sequence, tsdf, scale))
-
-
-def _mean_rows(rows: list[dict]) -> dict:
-    """Per metric, the mean over the rows that have it."""
-    keys = dict.fromkeys(k for r in rows for k in r)
-    return {k: round(float(np.mean([r[k] for r in rows if k in r])), 5) for k in keys}
+def heldout_scores(recon, sequence: RGBDSequence, scale: float | None = None) -> dict:
+    """The model's held-out scores ({"model": {...}}, see :func:`score_views`)."""
+    return score_views(heldout_views(recon, sequence, scale=scale), recon.config.export.min_opacity,
+                       recon.depth_error.dof)

@@ -191,32 +191,64 @@ def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportC
     part (targets.depth_sigma_relative) is common to both, the model having learned from this
     sensor, so it is added to the fused variance afterwards: observed surfaces keep the sensor's
     accuracy, the others come from the model, each with its fused sigma. config: the export
-    settings (default: the reconstruction's).
+    settings (default: the reconstruction's). :func:`sensor_geometry` is the same export without
+    the model.
     """
     cfg = config or recon.config.export
+    poses, views = _export_views(recon, sequence, cfg)
+    intr = scale_intrinsic(recon.intrinsic, cfg.scale) if views is None else \
+        scale_intrinsic(views.intrinsic, cfg.fused_scale)
+    renders = [recon.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
+    if views is None:  # the model alone; its depth filtered by config.max_point_std
+        return _geometry(renders, poses, intrinsic_matrix(intr), cfg, cfg.max_point_std, 1)
+    noise = recon.config.targets.sensor_noise()
+    for k, r in enumerate(renders):
+        z = _inside_box(views[k].depth, views.K, poses[k], recon.aabb)
+        # the model learned from this sensor, so its systematic error is common to both: fuse the
+        # independent (random) parts, then add the common part back; max_point_std applies to the
+        # model's depth before the fusion
+        fused = fuse_render_with_sensor(r, z, noise.sigma(z), cfg.min_opacity, cfg.max_point_std)
+        common = np.where(z > 0, noise.systematic_var(fused["depth"]), 0)
+        fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
+        renders[k] = fused
+    return _geometry(renders, poses, views.K, cfg, np.inf, max(1, round(1 / cfg.scale)))
+
+
+def sensor_geometry(recon, sequence: RGBDSequence, config: ExportConfig | None = None) -> Geometry:
+    """:func:`export_geometry` without the model: the sensor's own depth and colour in the same
+    views at the training resolution, with its sigma (random and systematic), fused into a point
+    cloud and a mesh exactly as the export fuses the model's and the sensor's (the ablation of the
+    model: what the sensor alone gives). sequence: the input sequence, with depth images."""
+    cfg = config or recon.config.export
+    check_sequence(sequence, len(recon.poses), "sensor_geometry(): sequence", needs_depth=True)
+    poses, views = _export_views(recon, sequence, cfg)
+    noise, renders = recon.config.targets.sensor_noise(), []
+    for k, pose in enumerate(poses):
+        frame = views[k]
+        z = _inside_box(frame.depth, views.K, pose, recon.aabb)
+        sigma = np.sqrt(noise.sigma(z) ** 2 + noise.systematic_var(z))
+        renders.append({"color": views.color_on_depth_grid(frame.color) / 255.0, "depth": z,
+                        "depth_std": np.where(z > 0, sigma, np.inf).astype(np.float32),
+                        "opacity": (z > 0).astype(np.float32)})
+    return _geometry(renders, poses, views.K, cfg, np.inf, max(1, round(1 / cfg.scale)))
+
+
+def _export_views(recon, sequence: RGBDSequence | None, cfg: ExportConfig):
+    """(poses (V, 4, 4), the sequence's frames at those views at the training resolution, or None
+    without sensor depth) of the export views: at most cfg.max_views training frames, evenly spaced."""
     frames = recon.train_indices[evenly_spaced(len(recon.train_indices), cfg.max_views)]
-    poses = recon.poses[frames]
     views = None
     if sequence is not None:
         check_sequence(sequence, len(recon.poses), "export_geometry(): sequence")
         if sequence.has_depth:
             views = sequence.select(frames).scaled_by(recon.config.image_scale)
-    intr = scale_intrinsic(recon.intrinsic, cfg.scale) if views is None else \
-        scale_intrinsic(views.intrinsic, cfg.fused_scale)
-    K = intrinsic_matrix(intr)
-    renders = [recon.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
-    max_std, stride = cfg.max_point_std, 1  # max_std applies to the model's depth, before any fusion
-    if views is not None:  # fused at the training resolution (the sensor's own), points as dense as config.scale's
-        K, max_std, stride = views.K, np.inf, max(1, round(1 / cfg.scale))
-        noise = recon.config.targets.sensor_noise()
-        for k, r in enumerate(renders):
-            z = _inside_box(views[k].depth, K, poses[k], recon.aabb)
-            # the model learned from this sensor, so its systematic error is common to both:
-            # fuse the independent (random) parts, then add the common part back
-            fused = fuse_render_with_sensor(r, z, noise.sigma(z), cfg.min_opacity, cfg.max_point_std)
-            common = np.where(z > 0, noise.systematic_var(fused["depth"]), 0)
-            fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
-            renders[k] = fused
+    return recon.poses[frames], views
+
+
+def _geometry(renders: list[dict], poses: np.ndarray, K: np.ndarray, cfg: ExportConfig, max_std: float,
+              stride: int) -> Geometry:
+    """The point cloud (every `stride`-th pixel) and mesh of renders (depth filtered by cfg's opacity
+    and `max_std`), each point and vertex with its depth sigma."""
     cloud, point_sigma = point_cloud_from_renders(renders, poses, K, cfg.min_opacity, max_std,
                                                   voxel_size=cfg.mesh_voxel_size / 2, stride=stride)
     mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, max_std,

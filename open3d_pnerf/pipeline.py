@@ -222,9 +222,9 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
     reconstruct(). reference: a ground-truth ``o3d.geometry.TriangleMesh`` or
     ``PointCloud`` (world frame of the poses) for geometry metrics. voxel_size: TSDF voxel
     (m), truncation 4 voxels. weight_threshold: the TSDF keeps voxels seen by more training
-    frames than this; None = min(3, training frames / 5) (3 is Open3D's default for dense
-    video; with a few sparse views most surfaces are seen by fewer frames and would vanish).
-    Both are rendered at the held-out poses at the training resolution. An image-only
+    frames than this; None = the exported mesh's own threshold (export.mesh_min_views - 0.5),
+    so both keep the same surfaces; Open3D's default (3) is a second, labelled row. Every
+    method is rendered at the held-out poses at the training resolution. An image-only
     sequence (no depth images, e.g. an LLFF folder) has no TSDF to fuse: the model is
     scored alone (colour metrics). See :func:`open3d_pnerf.comparison.compare`.
     """

@@ -12,6 +12,9 @@ from .data.sequence import RGBDSequence, check_sequence
 from .errors import InputError
 from .raycast import MeshRaycaster
 
+OPEN3D_WEIGHT_THRESHOLD = 3.0
+"""Open3D's default weight threshold of a TSDF's surface: voxels observed more than 3 times."""
+
 
 class TSDFVolume:
     """A coloured TSDF volume (Open3D ``t.geometry.VoxelBlockGrid``).
@@ -86,11 +89,13 @@ class TSDFVolume:
             coords, depth_img, color_img, intr_d, intr_c, extr, 1.0, self.depth_max, self.trunc_multiplier
         )
 
-    def mesh(self) -> o3d.geometry.TriangleMesh:
-        """Marching-cubes surface with vertex colours, as a legacy Open3D mesh (empty if nothing fused)."""
+    def mesh(self, weight_threshold: float | None = None) -> o3d.geometry.TriangleMesh:
+        """Marching-cubes surface with vertex colours, as a legacy Open3D mesh (empty if nothing
+        fused), of the voxels observed more often than weight_threshold (default: the volume's)."""
         if self.grid.hashmap().size() == 0:
             return o3d.geometry.TriangleMesh()
-        mesh = self.grid.extract_triangle_mesh(weight_threshold=self.weight_threshold).to_legacy()
+        threshold = self.weight_threshold if weight_threshold is None else weight_threshold
+        mesh = self.grid.extract_triangle_mesh(weight_threshold=threshold).to_legacy()
         mesh.compute_vertex_normals()
         return mesh
 

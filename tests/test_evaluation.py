@@ -17,7 +17,7 @@ import open3d as o3d
 import pytest
 
 from open3d_pnerf import ReconstructionConfig
-from open3d_pnerf.comparison import Comparison, comparison_figure
+from open3d_pnerf.comparison import METHODS, Comparison, comparison_figure
 from open3d_pnerf.pipeline import compare_with_tsdf
 from open3d_pnerf.errors import ConfigError, InputError
 from open3d_pnerf.evaluation import (
@@ -25,9 +25,9 @@ from open3d_pnerf.evaluation import (
     depth_errors,
     depth_nll,
     geometry_metrics,
-    heldout_renders,
+    heldout_views,
     psnr,
-    score_renders,
+    score_views,
     sigma_multiple,
     ssim,
 )
@@ -221,61 +221,105 @@ def test_geometry_metrics_rejects_empty_and_foreign_geometry():
         geometry_metrics(o3d.t.geometry.TriangleMesh.from_legacy(unit_box()), unit_box())
 
 
-# -- scoring held-out renders ------------------------------------------------------------------------
-def render_item(index, model_color_err, model_depth_err, tsdf=True, h=6, w=8):
-    """A heldout_renders item with known errors: gt colour 0.5, depth 2 m (a missing row)."""
+# -- scoring held-out views -------------------------------------------------------------------------
+def view_item(index, model_color_err, model_depth_err, tsdf=True, h=6, w=8):
+    """A heldout_views item with known errors: gt colour 0.5, depth 2 m (a missing row); the model
+    covers every pixel, the TSDF (if any) the left half."""
     color = np.full((h, w, 3), 0.5)
     depth = np.full((h, w), 2.0, np.float32)
     depth[0] = 0  # no sensor depth: not scored
     model = {"color": color + model_color_err, "depth": depth + model_depth_err,
-             "depth_std": np.full((h, w), 0.02, np.float32)}
-    item = {"index": index, "color": color, "depth": depth, "model": model, "tsdf": None}
+             "depth_std": np.full((h, w), 0.02, np.float32), "opacity": np.ones((h, w), np.float32)}
+    item = {"index": index, "color": color, "depth": depth, "model": model, "surfaces": {}}
     if tsdf:
-        hit = np.zeros((h, w), bool)
-        hit[:, : w // 2] = True
-        tsdf_color = np.where(hit[..., None], color + 0.1, color + 0.3)
-        item["tsdf"] = {"color": tsdf_color, "depth": np.where(hit, depth - 0.03, 0).astype(np.float32), "hit": hit}
+        item["surfaces"]["tsdf"] = surface(color, depth, columns=range(w // 2), color_err=0.1, depth_err=-0.03)
+        item["surfaces"]["tsdf"]["color"][:, w // 2:] += 0.2  # misses: a colour error 0.3
     return item
 
 
-def test_score_renders_averages_known_errors_over_frames():
-    items = [render_item(0, 0.1, 0.01), render_item(4, 0.2, 0.03)]
-    scores = score_renders(items)
+def surface(color, depth, columns, color_err=0.0, depth_err=0.0):
+    """A surface render that hits the pixels of `columns` with known colour and depth errors."""
+    hit = np.zeros(depth.shape, bool)
+    hit[:, list(columns)] = True
+    return {"color": color + color_err, "depth": np.where(hit, depth + depth_err, 0).astype(np.float32), "hit": hit}
+
+
+def test_score_views_pools_known_errors_over_frames():
+    items = [view_item(0, 0.1, 0.01), view_item(4, 0.2, 0.03)]
+    scores = score_views(items, min_opacity=0.9, sensor_based=["tsdf"])
     assert set(scores) == {"model", "tsdf"}
     model, tsdf = scores["model"], scores["tsdf"]
+    # whole frame: the mean of the frames' PSNRs; on pixel sets: of the errors pooled over frames
     assert model["psnr"] == pytest.approx((20 - 10 * math.log10(0.04)) / 2, abs=1e-4)
+    assert model["psnr_common"] == model["psnr_hits"] == pytest.approx(-10 * math.log10((0.01 + 0.04) / 2), abs=1e-4)
     assert model["depth_l1"] == pytest.approx(0.02, abs=1e-5)
-    assert model["depth_rmse"] == pytest.approx(0.02, abs=1e-5)
+    assert model["depth_rmse"] == pytest.approx(math.sqrt((0.01**2 + 0.03**2) / 2), abs=1e-5)
     assert model["depth_rel"] == pytest.approx(0.01, abs=1e-5)
-    assert model["depth_pixels"] == 40  # 5 rows x 8
+    assert model["depth_pixels"] == 80  # 5 rows x 8, two frames
+    assert model["coverage"] == 1.0 and model["common_share"] == 0.5 and model["only_share"] == 0.5
     # errors 0.01 and 0.03 against sigma 0.02: within 1 sigma in the first frame only
     assert (model["within_1"], model["within_2"], model["within_3"]) == (0.5, 1.0, 1.0)
+    assert model["within_3_only"] == 1.0
     nll = lambda e: 0.5 * (e / 0.02) ** 2 + math.log(0.02) + HALF_LOG_2PI  # noqa: E731
     assert model["nll"] == pytest.approx((nll(0.01) + nll(0.03)) / 2, abs=1e-4)
     assert model["ssim"] == pytest.approx(np.mean([ssim(i["model"]["color"], i["color"]) for i in items]), abs=1e-5)
     # TSDF: colour error 0.1 on its hits (left half), 0.3 elsewhere; depth 3 cm short on hits
-    assert tsdf["psnr_hits"] == pytest.approx(20.0, abs=1e-4)
+    assert tsdf["psnr_hits"] == tsdf["psnr_common"] == pytest.approx(20.0, abs=1e-4)
     assert tsdf["psnr"] == pytest.approx(-10 * math.log10((0.01 + 0.09) / 2), abs=1e-4)
-    assert tsdf["hit_fraction"] == 0.5
-    assert tsdf["depth_l1"] == pytest.approx(0.03, abs=1e-5) and tsdf["depth_pixels"] == 20
-    # without TSDF renders only the model is scored
-    assert set(score_renders([render_item(0, 0.1, 0.01, tsdf=False)])) == {"model"}
+    assert tsdf["coverage"] == tsdf["common_share"] == 0.5
+    assert tsdf["depth_l1"] == tsdf["depth_l1_hits"] == tsdf["depth_l1_common"] == pytest.approx(0.03, abs=1e-5)
+    assert tsdf["depth_pixels"] == 40 and "depth_l1_only" not in tsdf and "within_1" not in tsdf
+    # without surfaces only the model is scored
+    assert set(score_views([view_item(0, 0.1, 0.01, tsdf=False)], 0.9)) == {"model"}
+
+
+def test_score_views_scores_common_own_and_model_only_pixels():
+    item = view_item(3, 0.1, 0.01, tsdf=False)
+    color, gt, model = item["color"], item["depth"], item["model"]
+    model["depth"][:, 4:] = gt[:, 4:] + 0.5  # the model is 0.5 m off right of the sensor-based surfaces
+    model["depth_std"][:, 6:] = 0.2  # ... and says so in column 6 only
+    model["opacity"][:, 7] = 0.5  # it does not cover column 7
+    item["surfaces"] = {"mesh": surface(color, gt, range(6), depth_err=0.02),
+                        "sensor": surface(color, gt, range(3)),
+                        "tsdf": surface(color, gt, range(4), depth_err=-0.03),
+                        "tsdf_default": surface(color, gt, range(2), depth_err=-0.03)}
+    scores = score_views([item], min_opacity=0.9, common_of=["model", "mesh", "sensor", "tsdf"],
+                         sensor_based=["sensor", "tsdf"])
+    model, mesh, sensor, tsdf = (scores[n] for n in ("model", "mesh", "sensor", "tsdf"))
+    # common: columns 0-2 (the sensor alone's), 15 of the 40 pixels with sensor depth
+    for row in (model, mesh, sensor, tsdf):
+        assert row["common_share"] == 0.375
+    assert (model["depth_l1_common"], mesh["depth_l1_common"], sensor["depth_l1_common"],
+            tsdf["depth_l1_common"]) == pytest.approx((0.01, 0.02, 0.0, 0.03), abs=1e-6)
+    # own hits: the model columns 0-6, the mesh 0-5; the model's whole-frame depth counts column 7
+    assert model["coverage"] == 0.875 and mesh["coverage"] == 0.75 and tsdf["coverage"] == 0.5
+    assert model["depth_l1_hits"] == pytest.approx((20 * 0.01 + 15 * 0.5) / 35, abs=1e-6)
+    assert model["depth_l1"] == pytest.approx((20 * 0.01 + 20 * 0.5) / 40, abs=1e-6)
+    # only the model: columns 4-6 (the mesh: 4-5), where neither the sensor nor the TSDF covers
+    assert model["only_share"] == 0.375 and model["depth_l1_only"] == pytest.approx(0.5, abs=1e-6)
+    assert mesh["only_share"] == 0.25 and mesh["depth_l1_only"] == pytest.approx(0.02, abs=1e-6)
+    assert model["within_3_only"] == pytest.approx(1 / 3, abs=1e-5)  # column 6's sigma covers 0.5 m
+    assert "depth_l1_only" not in sensor and "depth_l1_only" not in tsdf
+    # a reference surface outside common_of: its own hits only, and the common pixels do not shrink
+    assert "depth_l1_common" not in scores["tsdf_default"] and scores["tsdf_default"]["coverage"] == 0.25
+    assert scores["model"]["psnr_common"] == pytest.approx(20.0, abs=1e-4)
 
 
 # -- comparison table and figure ---------------------------------------------------------------------
 def test_comparison_markdown_lists_each_metric_once_in_display_units():
     table = {
-        "model": {"psnr": 25.123, "depth_l1": 0.0123, "within_1": 0.7, "fscore_20mm": 0.5, "fscore_5mm": 0.25},
-        "tsdf": {"psnr": 20.0, "psnr_hits": 28.0, "depth_l1": 0.02, "fscore_20mm": 0.4},
+        "model": {"psnr": 25.123, "depth_l1_common": 0.0123, "within_1": 0.7, "within_2": 0.9, "within_3": 0.99,
+                  "fscore_20mm": 0.5, "fscore_5mm": 0.25},
+        "tsdf": {"psnr": 20.0, "psnr_hits": 28.0, "depth_l1_common": 0.02, "fscore_20mm": 0.4},
     }
-    text = Comparison(table, None, None, [], []).markdown()
+    text = Comparison(table, None, {}, [], []).markdown()
     assert text == (
-        "| metric | model | tsdf |\n"
+        "| metric | model (the field's renders) | Open3D TSDF, same threshold |\n"
         "| --- | --- | --- |\n"
-        "| PSNR (dB) | 25.12 | 20.00 |\n"
-        "| PSNR on TSDF hits (dB) | - | 28.00 |\n"
-        "| depth L1 (mm) | 12.3 | 20.0 |\n"
-        "| errors within 1 sigma | 0.70 | - |\n"
+        "| PSNR, whole frame (dB) | 25.12 | 20.00 |\n"
+        "| PSNR on its own hits (dB) | - | 28.00 |\n"
+        "| depth L1 on common pixels (mm) | 12.3 | 20.0 |\n"
+        "| errors within 68.3 / 95.4 / 99.7% intervals | 0.700 / 0.900 / 0.990 | - |\n"
         "| F-score @ 20mm | 0.500 | 0.400 |\n"
         "| F-score @ 5mm | 0.250 | - |\n"
     )
@@ -292,7 +336,7 @@ def panels(fig) -> dict:
 
 
 def test_comparison_figure_shows_inputs_renders_and_errors():
-    item = render_item(7, 0.1, 0.01)
+    item = view_item(7, 0.1, 0.01)
     item["model"]["depth"][1, 1] = 2.5
     fig = comparison_figure(item)
     grid = panels(fig)
@@ -309,12 +353,15 @@ def test_comparison_figure_shows_inputs_renders_and_errors():
     np.testing.assert_allclose(model_err, expected, atol=1e-6)
     assert model_err[1, 1] == pytest.approx(0.5)
     tsdf_err = np.asarray(grid[2, 2].images[0].get_array().filled(np.nan))
-    hit = item["tsdf"]["hit"] & (gt > 0)
+    hit = item["surfaces"]["tsdf"]["hit"] & (gt > 0)
     assert np.isnan(tsdf_err[~hit]).all()
     np.testing.assert_allclose(tsdf_err[hit], 0.03, atol=1e-6)
     np.testing.assert_allclose(np.asarray(grid[1, 3].images[0].get_array()), 0.02)
-    # without a TSDF render: two rows
-    item["tsdf"] = None
+    # with the exported mesh: a row between the model and the TSDF; without surfaces: two rows
+    item["surfaces"]["mesh"] = surface(item["color"], gt, range(6), depth_err=0.02)
+    grid = panels(comparison_figure(item))
+    assert [grid[r, 0].get_ylabel() for r in range(4)] == ["input", "model", "exported mesh", "TSDF"]
+    item["surfaces"] = {}
     assert sorted(panels(comparison_figure(item))) == [(r, c) for r in range(2) for c in range(4)]
 
 
@@ -381,19 +428,20 @@ def test_compare_with_tsdf_rejects_bad_inputs(small_room):
 @pytest.fixture(scope="module")
 def comparison(small_room):
     # 60 steps leave depth spreads ~1 m: lower the export thresholds so that the model has a
-    # mesh to score. 9 training views around the room see most surfaces 1-3 times: keep TSDF
-    # voxels seen once (weight_threshold=0.5).
+    # mesh to score. The TSDF is extracted at the exported mesh's threshold (seen once).
     config = ReconstructionConfig.preset("test", holdout_every=4, progress=False, max_steps=60,
                                          export={"min_opacity": 0.5, "max_point_std": 1.0})
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = compare_with_tsdf(small_room.sequence, config, poses=small_room.sequence.gt_poses,
-                                   reference=small_room.reference_points(), weight_threshold=0.5, progress=False)
-    assert not [w for w in caught if "no mesh" in str(w.message)]  # both have geometry to score
+                                   reference=small_room.reference_points(), progress=False)
+    assert not [w for w in caught if "no mesh" in str(w.message)]  # every method has geometry to score
     return result
 
 
-METRICS = ("psnr", "depth_l1", "accuracy", "completeness", "fscore_20mm")
+METRICS = ("psnr", "psnr_hits", "depth_l1", "depth_l1_hits", "coverage")
+GEOMETRY = ("accuracy", "completeness", "fscore_20mm")  # of each mesh: every method but the field's renders
+COMMON = ("psnr_common", "depth_l1_common", "common_share")
 
 
 @pytest.mark.slow
@@ -403,32 +451,40 @@ def test_compare_with_tsdf_on_the_synthetic_room(comparison, small_room):
     np.testing.assert_array_equal(recon.holdout_indices, [0, 4, 8])
     np.testing.assert_array_equal(recon.train_indices, [1, 2, 3, 5, 6, 7, 9, 10, 11])
     np.testing.assert_array_equal(recon.poses, small_room.sequence.gt_poses)
-    assert set(c.table) == {"model", "tsdf"}
-    for name in ("model", "tsdf"):
-        row = c.table[name]
-        assert set(METRICS) <= set(row), name
-        assert all(math.isfinite(v) for v in row.values()), row
-    model, tsdf = c.table["model"], c.table["tsdf"]
+    assert list(c.table) == ["model", "mesh", "sensor", "tsdf", "tsdf_default"]
+    for name, row in c.table.items():
+        assert set(METRICS) <= set(row) and (set(GEOMETRY) <= set(row)) == (name != "model"), name
+        assert all(math.isfinite(v) for v in row.values()), (name, row)
+        assert (set(COMMON) <= set(row)) == (name != "tsdf_default"), name
+    # the same common pixels for every method; the model-only pixels for the model and its mesh
+    assert len({c.table[n]["common_share"] for n in ("model", "mesh", "sensor", "tsdf")}) == 1
+    assert {n for n, row in c.table.items() if "depth_l1_only" in row} == {"model", "mesh"}
+    model, tsdf, default = c.table["model"], c.table["tsdf"], c.table["tsdf_default"]
     assert model["within_1"] <= model["within_2"] <= model["within_3"]
-    assert 0.5 < tsdf["hit_fraction"] <= 1
+    # the same threshold as the exported mesh (seen once) keeps more of the TSDF than Open3D's
+    # default (seen more than 3 times) with 9 views around the room
+    assert 0.5 < tsdf["coverage"] <= 1 and default["coverage"] < tsdf["coverage"]
+    assert len(c.surfaces["tsdf"].triangles) > len(c.surfaces["tsdf_default"].triangles)
     # exact poses and Kinect-like noise: the TSDF's depth where it hits is ~2 cm off the
-    # (noisy) held-out depth, most of it the held-out frame's own noise
-    assert tsdf["depth_l1"] < 0.03
+    # (noisy) held-out depth, most of it the held-out frame's own noise; so is the sensor alone's
+    assert tsdf["depth_l1_hits"] < 0.03 and c.table["sensor"]["depth_l1_hits"] < 0.03
     assert tsdf["psnr_hits"] > tsdf["psnr"]  # misses render black
-    # figures: evenly spread held-out frames (first and last), 3 rows x 4 columns each
+    # figures: evenly spread held-out frames (first and last): input, model, exported mesh, TSDF
     assert c.frames == [0, 8] and len(c.figures) == 2
     for fig in c.figures:
-        assert sorted(panels(fig)) == [(r, col) for r in range(3) for col in range(4)]
-    # the table's held-out scores are those of heldout_renders + score_renders
-    items = list(heldout_renders(recon, small_room.sequence, c.tsdf))
+        assert sorted(panels(fig)) == [(r, col) for r in range(4) for col in range(4)]
+    # the table's held-out scores are those of heldout_views + score_views
+    items = list(heldout_views(recon, small_room.sequence, c.surfaces))
     assert [i["index"] for i in items] == [0, 4, 8]
     assert items[0]["color"].shape == (60, 80, 3) and items[0]["depth"].shape == (60, 80)
-    assert set(items[0]["model"]) >= {"color", "depth", "depth_std"} and items[0]["tsdf"]["hit"].shape == (60, 80)
-    rescored = score_renders(items)
-    for name in ("model", "tsdf"):
+    assert set(items[0]["model"]) >= {"color", "depth", "depth_std", "opacity"}
+    assert items[0]["surfaces"]["tsdf"]["hit"].shape == (60, 80)
+    rescored = score_views(items, recon.config.export.min_opacity, recon.depth_error.dof,
+                           common_of=["model", "mesh", "sensor", "tsdf"], sensor_based=["sensor", "tsdf"])
+    for name in c.table:
         for key, value in rescored[name].items():
             assert c.table[name][key] == pytest.approx(value, abs=1e-5), (name, key)
-    assert all(i["tsdf"] is None for i in heldout_renders(recon, small_room.sequence))
+    assert all(i["surfaces"] == {} for i in heldout_views(recon, small_room.sequence))
 
 
 @pytest.mark.slow
@@ -436,21 +492,23 @@ def test_comparison_save_and_markdown(comparison, tmp_path):
     c = comparison
     text = c.markdown()
     lines = text.splitlines()
-    assert lines[0] == "| metric | model | tsdf |"
+    assert lines[0] == "| metric | " + " | ".join(METHODS.values()) + " |"
     labels = [line.split(" | ")[0][2:] for line in lines[2:]]
-    for label in ("PSNR (dB)", "depth L1 (mm)", "accuracy (mm)", "completeness (mm)", "F-score @ 20mm",
-                  "F-score @ 50mm"):
+    for label in ("PSNR, whole frame (dB)", "depth L1 on common pixels (mm)", "pixels only the model covers (share)",
+                  "accuracy (mm)", "completeness (mm)", "F-score @ 20mm", "F-score @ 50mm"):
         assert labels.count(label) == 1, label
-    assert all(line.count("|") == 4 for line in lines)
-    row = lines[2 + labels.index("depth L1 (mm)")]
-    assert row == (f"| depth L1 (mm) | {c.table['model']['depth_l1'] * 1000:.1f} | "
-                   f"{c.table['tsdf']['depth_l1'] * 1000:.1f} |")
+    assert all(line.count("|") == 7 for line in lines)
+    row = lines[2 + labels.index("depth L1 on common pixels (mm)")]
+    cells = [f"{c.table[n]['depth_l1_common'] * 1000:.1f}" for n in ("model", "mesh", "sensor", "tsdf")]
+    assert row == "| depth L1 on common pixels (mm) | " + " | ".join(cells) + " | - |"
     out = c.save(tmp_path / "cmp")
     assert json.loads((out / "comparison.json").read_text()) == c.table
     assert (out / "comparison.md").read_text() == text
     for frame in c.frames:
         assert (out / f"compare_frame_{frame:04d}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    mesh = o3d.io.read_triangle_mesh(str(out / "tsdf_mesh.ply"))
-    assert len(mesh.triangles) > 1000 and mesh.has_vertex_colors()
+    for name in ("tsdf_mesh.ply", "sensor_mesh.ply"):
+        mesh = o3d.io.read_triangle_mesh(str(out / name))
+        assert len(mesh.triangles) > 1000 and mesh.has_vertex_colors(), name
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        ["comparison.json", "comparison.md", "tsdf_mesh.ply"] + [f"compare_frame_{f:04d}.png" for f in c.frames])
+        ["comparison.json", "comparison.md", "tsdf_mesh.ply", "sensor_mesh.ply"]
+        + [f"compare_frame_{f:04d}.png" for f in c.frames])

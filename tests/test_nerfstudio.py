@@ -210,4 +210,4 @@ def test_notebook_representations(room):
     md = recon._repr_markdown_()
     assert "| frames | 6: 4 trained, 2 held out |" in md and "loss `pnerf`" in md
     comparison = pn.compare_with_tsdf(room, reconstruction=recon, progress=False)
-    assert comparison._repr_markdown_() == comparison.markdown() and "| PSNR (dB) |" in comparison.markdown()
+    assert comparison._repr_markdown_() == comparison.markdown() and "| PSNR, whole frame (dB) |" in comparison.markdown()
