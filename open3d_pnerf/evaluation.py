@@ -8,7 +8,7 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from .camera import pixel_coordinates
+from .camera import camera_rays, pixel_coordinates
 from .data.sequence import RGBDSequence, evenly_spaced
 from .error_law import GAUSSIAN_SHARES, depth_nll, sigma_multiple
 from .errors import InputError
@@ -238,27 +238,31 @@ class _Pool:
 
 
 def training_depth_errors(recon, sequence: RGBDSequence, frames: int = 8,
-                          pixels: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(err, spread, z), each (M,) metres: a Reconstruction's depth errors against the sensor on
-    its training frames, the raw spread of its depth distribution there (at least 1 um) and the
-    sensor's z-depth. Up to `frames` training frames (evenly spaced) at the training resolution,
-    `pixels` random pixels of each with sensor depth (drawn from config.seed + 2), kept where the
-    model's opacity exceeds 0.5; held-out frames are never read."""
+                          pixels: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(err, spread, z, unseen), each (M,) metres: a Reconstruction's depth errors against the
+    sensor on its training frames, the raw spread of its depth distribution there (at least 1 um),
+    the sensor's z-depth and the rendered point's distance to the observed surfaces
+    (recon.observed; 0 without them). Up to `frames` training frames (evenly spaced) at the
+    training resolution, `pixels` random pixels of each with sensor depth (drawn from config.seed
+    + 2), kept where the model's opacity exceeds 0.5; held-out frames are never read."""
     train = recon.train_indices[evenly_spaced(len(recon.train_indices), frames)]
     seq = sequence.select(train).scaled_by(recon.config.image_scale)
     rng = np.random.default_rng(recon.config.seed + 2)
-    errors, spreads, depths = [], [], []
+    rows = []
     for k, i in enumerate(train):
         depth = seq[k].depth.reshape(-1)
         pix = rng.choice(np.flatnonzero(depth > 0), min(pixels, int((depth > 0).sum())), replace=False)
-        u, v = (torch.as_tensor(c, dtype=torch.float32, device=recon.device)
-                for c in pixel_coordinates(pix, seq.image_size[1]))
-        out = recon.render_pixels(recon.poses[i], seq.intrinsic, u, v)
+        u, v = pixel_coordinates(pix, seq.image_size[1])
+        out = recon.render_pixels(recon.poses[i], seq.intrinsic, *(torch.as_tensor(c, dtype=torch.float32,
+                                                                                   device=recon.device) for c in (u, v)))
         ok = out["opacity"] > 0.5
-        errors.append(np.abs(out["depth"] - depth[pix])[ok])
-        spreads.append(np.maximum(out["depth_std"][ok], 1e-6))
-        depths.append(depth[pix][ok])
-    return tuple(np.concatenate(a) if a else np.zeros(0) for a in (errors, spreads, depths))
+        unseen = np.zeros(ok.sum())
+        if recon.observed is not None:
+            points = camera_rays(seq.K, u[ok], v[ok]) * out["depth"][ok, None]
+            unseen = recon.observed.distance(points @ recon.poses[i][:3, :3].T + recon.poses[i][:3, 3])
+        rows.append((np.abs(out["depth"] - depth[pix])[ok], np.maximum(out["depth_std"][ok], 1e-6), depth[pix][ok],
+                     unseen))
+    return tuple(np.concatenate(a) for a in zip(*rows)) if rows else (np.zeros(0),) * 4
 
 
 def heldout_scores(recon, sequence: RGBDSequence, scale: float | None = None) -> dict:

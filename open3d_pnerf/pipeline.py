@@ -26,6 +26,7 @@ from .distributed import DistributedContext, distributed_session
 from .errors import CheckpointError, InputError, TrainingInterrupted
 from .export import export_geometry
 from .model import build_model
+from .observed import ObservedSurface
 from .reconstruction import Reconstruction
 from .report import report_markdown
 from .scene import depth_range, training_box
@@ -126,6 +127,10 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     targets = config.targets.build(train_seq, poses[train_idx], covariances[train_idx], storage, config.progress)
     box = training_box(train_seq, targets, poses[train_idx])
     aabb = dist.broadcast_array(box, "the scene box's broadcast", config.device)
+    observed = None
+    if train_seq.has_depth:  # what the sensor saw: the model's depth is widened away from it
+        observed = ObservedSurface.from_depths(targets.mean, targets.valid, train_seq.K, poses[train_idx],
+                                               config.export.mesh_voxel_size, aabb)
     timings["targets_s"] = round(time.perf_counter() - t1, 2)
     stages.update(1)
 
@@ -153,7 +158,7 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     stages.update(1)
     poses, gains = model.frames_after_training(poses, sequence.timestamps, train_idx, hold_idx)
     recon = Reconstruction(model, config, poses, covariances, train_seq.intrinsic, train_idx, hold_idx,
-                           timestamps=sequence.timestamps, color_gains=gains,
+                           timestamps=sequence.timestamps, color_gains=gains, observed=observed,
                            stats={"tracking": tracking, "training": train_stats, "history": history,
                                   "targets": targets_summary, "timings": timings})
     if dist.is_main and export:  # rank 0 calibrates the depth sigma on training frames and exports

@@ -17,7 +17,7 @@ import open3d as o3d
 import torch
 
 from . import storage
-from .camera import camera_pose, check_intrinsic, intrinsic_matrix, pose_to_extrinsic
+from .camera import camera_pose, camera_rays, check_intrinsic, intrinsic_matrix, pose_to_extrinsic
 from .config import ReconstructionConfig
 from .data.nerfstudio import write_nerfstudio
 from .data.sequence import RGBDSequence, check_sequence
@@ -26,6 +26,7 @@ from .errors import InputError
 from .evaluation import training_depth_errors
 from .export import Geometry
 from .model import PNeRFModel
+from .observed import ObservedSurface
 from .rendering import Rays
 
 
@@ -40,8 +41,10 @@ class Reconstruction:
     color_gains (N, 3): each frame's camera exposure as per-channel gains on the rendered colour
     (learned for training frames, interpolated in time for the others; ones without exposure
     compensation); see :meth:`render`. depth_error: how the model's depth spread becomes a
-    calibrated 1-sigma error (:meth:`calibrate_depth_sigma`). geometry: the exported mesh and
-    point cloud with their per-vertex and per-point depth sigma (``recon.mesh``, ...).
+    calibrated 1-sigma error (:meth:`calibrate_depth_sigma`). observed: the surfaces the
+    training frames' depth saw (None without depth): away from them the law widens the rendered
+    depth sigma (:meth:`render`). geometry: the exported mesh and point cloud with their
+    per-vertex and per-point depth sigma (``recon.mesh``, ...).
     """
 
     model: PNeRFModel
@@ -54,6 +57,7 @@ class Reconstruction:
     timestamps: np.ndarray | None = None
     color_gains: np.ndarray | None = None
     depth_error: DepthErrorLaw = DepthErrorLaw()
+    observed: ObservedSurface | None = None
     geometry: Geometry = dataclasses.field(default_factory=Geometry)
     stats: dict = dataclasses.field(default_factory=dict)
 
@@ -138,14 +142,20 @@ class Reconstruction:
         should have (``color_gains[frame]``); None gives the training frames' average exposure.
         Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m,
         depth_std (H, W) m (the spread of the model's depth distribution along each ray, made
-        a calibrated 1-sigma error by :attr:`depth_error`), opacity (H, W) in [0, 1].
+        a calibrated 1-sigma error by :attr:`depth_error`; where the rendered point lies away
+        from every surface the training frames' depth observed, :attr:`observed`, the law's
+        unseen term widens it to a share of the depth), opacity (H, W) in [0, 1].
         """
         pose, carried = self._camera(pose)
         intrinsic = check_intrinsic(intrinsic or carried or self.intrinsic)
         h, w = intrinsic.height, intrinsic.width
         v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
         out = self.render_pixels(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float(), chunk)
-        out["depth_std"] = self.depth_error.sigma(out["depth_std"], out["depth"])
+        unseen = None
+        if self.observed is not None:
+            rays = camera_rays(intrinsic_matrix(intrinsic), u.reshape(-1).cpu().numpy(), v.reshape(-1).cpu().numpy())
+            unseen = self.observed.distance((rays * out["depth"][:, None]) @ pose[:3, :3].T + pose[:3, 3])
+        out["depth_std"] = self.depth_error.sigma(out["depth_std"], out["depth"], unseen).astype(np.float32)
         if frame is not None:
             if not (isinstance(frame, (int, np.integer)) and 0 <= frame < len(self.poses)):
                 raise InputError(f"frame must be a frame index in [0, {len(self.poses)}), got {frame!r}")
@@ -241,8 +251,8 @@ class Reconstruction:
         if method not in ("likelihood", "gaussian", "quantile"):
             raise InputError(f"method must be 'likelihood', 'gaussian' or 'quantile', got {method!r}")
         check_sequence(sequence, len(self.poses), "calibrate_depth_sigma(): sequence", needs_depth=True)
-        err, spread, z = training_depth_errors(self, sequence, frames, pixels)
-        self.depth_error = DepthErrorLaw.fit(err, spread, z, method, coverage)
+        err, spread, z, unseen = training_depth_errors(self, sequence, frames, pixels)
+        self.depth_error = DepthErrorLaw.fit(err, spread, z, method, coverage, unseen)
         return self.depth_error.scale
 
     # -- other formats and the folder on disk --------------------------------------------------

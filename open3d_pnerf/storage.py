@@ -2,7 +2,8 @@
 
 The folder holds ``reconstruction.json`` (format version, config, scene box, depth range,
 intrinsic, frame split, timestamps, depth-error law, statistics), ``model.pt`` (the field's
-weights only), ``poses.npy``, ``covariances.npy``, ``color_gains.npy``, ``mesh.ply`` (with
+weights only), ``poses.npy``, ``covariances.npy``, ``color_gains.npy``, ``observed.npy`` (the centres of the
+voxels the training frames' depth saw, when there was depth), ``mesh.ply`` (with
 per-vertex ``depth_sigma``), ``point_cloud.ply`` (with per-point ``depth_sigma``), and the
 trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's ``trajectory.json`` (a
 PinholeCameraTrajectory with the training intrinsic). Reading never unpickles code
@@ -22,10 +23,11 @@ from ._files import atomic_write_all, read_json_object
 from .camera import check_intrinsic, intrinsic_matrix, pinhole
 from .config import ReconstructionConfig
 from .data.trajectories import write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
-from .error_law import DepthErrorLaw
+from .error_law import UNSEEN, UNSEEN_RAMP, DepthErrorLaw
 from .errors import CheckpointError, ConfigError
 from .export import Geometry, read_mesh_ply, read_point_cloud_ply, write_mesh_ply, write_point_cloud_ply
 from .model import build_model
+from .observed import ObservedSurface
 from .training import safe_torch_load
 
 FORMAT_VERSION = 2
@@ -49,8 +51,9 @@ def write_folder(recon, directory) -> Path:
         "train_indices": recon.train_indices.tolist(),
         "holdout_indices": recon.holdout_indices.tolist(),
         "timestamps": recon.timestamps.tolist(),
-        "depth_error": {"scale": law.scale, "floor": law.floor, "dof": None if np.isinf(law.dof) else law.dof},
+        "depth_error": law.to_dict(),
         "stats": recon.stats,
+        "observed_voxel_size": None if recon.observed is None else recon.observed.voxel_size,
     }
     weights = {k: v.cpu() for k, v in model.field.state_dict().items()}
     writes = {
@@ -63,6 +66,8 @@ def write_folder(recon, directory) -> Path:
         d / "trajectory.log": lambda p: write_log_trajectory(p, recon.poses),
         d / "trajectory.json": lambda p: write_open3d_trajectory(p, recon.poses, recon.intrinsic),
     }
+    if recon.observed is not None:
+        writes[d / "observed.npy"] = lambda p: np.save(p, recon.observed.centres)
     geometry, empty = recon.geometry or Geometry(), []
     for name, shape, write in (
         ("mesh.ply", geometry.mesh, lambda p: write_mesh_ply(p, geometry.mesh, geometry.mesh_sigma)),
@@ -74,6 +79,8 @@ def write_folder(recon, directory) -> Path:
         else:
             empty.append(name)
     atomic_write_all(writes)
+    if recon.observed is None:
+        (d / "observed.npy").unlink(missing_ok=True)
     for name in empty:
         (d / name).unlink(missing_ok=True)  # never leave a stale file from an earlier run
         warnings.warn(f"{name} not written: the model has no confident surface yet (train longer)")
@@ -106,6 +113,9 @@ def read_folder(directory, device: str | None = None) -> dict:
             raise ValueError(f"frame indices outside [0, {n})")
         depth_range = _depth_range(meta["depth_range"])
         law = _error_law(meta["depth_error"])
+        voxel = meta.get("observed_voxel_size")
+        if voxel is not None and not (isinstance(voxel, (int, float)) and np.isfinite(voxel) and voxel > 0):
+            raise ValueError(f"observed_voxel_size {voxel!r} is not a size > 0 (m)")
     except (KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f"{meta_path}: malformed metadata ({exc})") from None
     model = build_model(config, aabb, depth_range=depth_range)
@@ -118,9 +128,12 @@ def read_folder(directory, device: str | None = None) -> dict:
     gains = _load_array(d / "color_gains.npy", (n, 3))
     if not (gains > 0).all():
         raise CheckpointError(f"{d / 'color_gains.npy'}: colour gains must be > 0")
+    observed = None
+    if voxel is not None:
+        observed = ObservedSurface(float(voxel), _load_array(d / "observed.npy", (None, 3)))
     return dict(model=model, config=config, poses=_load_array(d / "poses.npy", (n, 4, 4)),
                 covariances=_load_array(d / "covariances.npy", (n, 6, 6)), intrinsic=intrinsic, train_indices=train,
-                holdout_indices=holdout, timestamps=timestamps, color_gains=gains, depth_error=law,
+                holdout_indices=holdout, timestamps=timestamps, color_gains=gains, depth_error=law, observed=observed,
                 geometry=Geometry(mesh, mesh_sigma, cloud, point_sigma), stats=meta.get("stats") or {})
 
 
@@ -139,12 +152,13 @@ def _read_meta(path: Path) -> dict:
 
 
 def _load_array(path: Path, shape: tuple) -> np.ndarray:
-    """A finite .npy array of the given shape (never unpickled)."""
+    """A finite .npy array of the given shape, None for any size on an axis (never unpickled)."""
     try:
         arr = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:
         raise CheckpointError(f"{path}: missing or corrupt ({exc})") from None
-    if arr.shape != shape or not np.isfinite(arr).all():
+    if len(arr.shape) != len(shape) or any(n not in (None, m) for n, m in zip(shape, arr.shape)) \
+            or not np.isfinite(arr).all():
         raise CheckpointError(f"{path}: expected finite values of shape {shape}, got shape {arr.shape}")
     return arr
 
@@ -170,11 +184,16 @@ def _depth_range(value) -> np.ndarray | None:
 
 
 def _error_law(value) -> DepthErrorLaw:
-    """A saved depth_error: {scale > 0, floor >= 0, dof > 0 or null (a Gaussian)} (ValueError otherwise)."""
-    if not isinstance(value, dict) or set(value) != {"scale", "floor", "dof"}:
-        raise ValueError(f"depth_error {value!r} is not {{scale, floor, dof}}")
+    """A saved depth_error: {scale > 0, floor >= 0, dof > 0 or null (a Gaussian)} and, from folders
+    that have them, unseen >= 0 and unseen_ramp > 0 (the defaults otherwise; ValueError if wrong)."""
+    keys = {"scale", "floor", "dof"}
+    if not isinstance(value, dict) or not keys <= set(value) <= keys | {"unseen", "unseen_ramp"}:
+        raise ValueError(f"depth_error {value!r} is not {{scale, floor, dof[, unseen, unseen_ramp]}}")
     number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)  # noqa: E731
     scale, floor, dof = value["scale"], value["floor"], value["dof"]
-    if not (number(scale) and scale > 0 and number(floor) and floor >= 0 and (dof is None or number(dof) and dof > 0)):
-        raise ValueError(f"depth_error {value!r}: need scale > 0, floor >= 0 and dof > 0 or null")
-    return DepthErrorLaw(float(scale), float(floor), np.inf if dof is None else float(dof))
+    unseen, ramp = value.get("unseen", UNSEEN), value.get("unseen_ramp", UNSEEN_RAMP)
+    if not (number(scale) and scale > 0 and number(floor) and floor >= 0 and (dof is None or number(dof) and dof > 0)
+            and number(unseen) and unseen >= 0 and number(ramp) and ramp > 0):
+        raise ValueError(f"depth_error {value!r}: need scale > 0, floor >= 0, dof > 0 or null, unseen >= 0 and "
+                         "unseen_ramp > 0")
+    return DepthErrorLaw(float(scale), float(floor), np.inf if dof is None else float(dof), float(unseen), float(ramp))

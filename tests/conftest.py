@@ -71,6 +71,7 @@ def tiny_reconstruction(shift: float = 0.0):
 
     from open3d_pnerf import Reconstruction, ReconstructionConfig
     from open3d_pnerf.export import Geometry
+    from open3d_pnerf.observed import ObservedSurface
 
     config = ReconstructionConfig.preset("test", field="grid", progress=False, **{"grid.resolutions": (8, 16)})
     aabb = np.array([[-1, -1, 0], [1, 1, 3]], np.float32) + shift
@@ -86,4 +87,4 @@ def tiny_reconstruction(shift: float = 0.0):
                         point_cloud=o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)),
                         point_sigma=np.full(10, 0.01))
     return Reconstruction(field, config, poses, covariances, plane_intrinsic(), [1, 2], [0], geometry=geometry,
-                          color_gains=np.full((3, 3), 1 + shift))
+                          color_gains=np.full((3, 3), 1 + shift), observed=ObservedSurface(0.01, points))
