@@ -20,7 +20,7 @@ import torch
 
 from .errors import ConfigError
 from .export import ExportConfig
-from .fields import FIELD_CONFIGS, GridConfig, HashGridConfig, VanillaConfig
+from .fields import FIELD_CONFIGS, GridConfig, HashGridConfig, SDFConfig, VanillaConfig
 from .losses import LOSSES, ObjectiveConfig
 from .rendering.volume import SamplingConfig
 from .settings import FLAG, Rule, Settings, count, number, one_of, optional, section, setting
@@ -41,6 +41,10 @@ class ReconstructionConfig(Settings):
     a CPU), "grid" (dense grids 16..192: as fast, coarser, 3x the memory; better with a few sparse
     views and for refine_poses) or "vanilla" (the paper's 8x256 MLP, slow, for comparison); its
     settings are the sub-config of the same name."""
+    geometry: str = setting("density", one_of(("density", "sdf")))
+    """"density": the field's density is free (NeRF); "sdf": it is derived from a learned signed
+    distance (VolSDF), trained with an eikonal term (objective.weights.eikonal), whose zero level
+    set is a surface; a grid field (hashgrid or grid) only. Its settings: the sub-config sdf."""
     max_steps: int = setting(1500, count(1))
     """Optimiser steps; the learning-rate schedule is laid over this many steps."""
     time_budget_s: float | None = setting(150.0, optional(number(0, low_open=True, unit="seconds")))
@@ -74,6 +78,7 @@ class ReconstructionConfig(Settings):
     hashgrid: HashGridConfig = section(HashGridConfig)
     grid: GridConfig = section(GridConfig)
     vanilla: VanillaConfig = section(VanillaConfig)
+    sdf: SDFConfig = section(SDFConfig)
     sampling: SamplingConfig = section(SamplingConfig)
     objective: ObjectiveConfig = section(ObjectiveConfig)
     optimizer: OptimizerConfig = section(OptimizerConfig)
@@ -135,7 +140,8 @@ class ReconstructionConfig(Settings):
         """The chosen field over the scene box aabb (2, 3) metres, on `device`, initialised from `seed`."""
         torch.manual_seed(self.seed)
         try:
-            field = self.field_config.build(torch.as_tensor(aabb), bf16=self.runtime.bf16_mlp)
+            sdf = {"sdf": self.sdf} if self.geometry == "sdf" else {}
+            field = self.field_config.build(torch.as_tensor(aabb), bf16=self.runtime.bf16_mlp, **sdf)
             return field.to(torch.device(self.device))
         except (RuntimeError, AssertionError) as exc:
             raise ConfigError(f"config field device={self.device!r} is not usable here ({exc})") from None
@@ -145,6 +151,12 @@ class ReconstructionConfig(Settings):
         """Raise ConfigError naming the first field with a bad value or type (each sub-config
         checks its own), or settings that do not go together."""
         super().validate(prefix)
+        if self.geometry == "sdf" and self.field == "vanilla":
+            raise ConfigError("config field geometry='sdf' needs a grid field (field 'hashgrid' or 'grid'): the "
+                              "vanilla MLP's finite-difference eikonal term would cost six extra MLP passes per point")
+        if self.geometry == "sdf" and self.sdf.max_sharpness < self.sdf.sharpness:
+            raise ConfigError(f"config field sdf.max_sharpness={self.sdf.max_sharpness!r} is below sdf.sharpness="
+                              f"{self.sdf.sharpness!r}, the initial sharpness")
         if self.field == "hashgrid" and self.hashgrid.backend == "kernel" and self.device.split(":")[0] != "cpu":
             raise ConfigError(f"config field hashgrid.backend='kernel' is a CPU kernel, but device={self.device!r}; "
                               "use backend 'auto' (the PyTorch path on other devices) or 'torch'")

@@ -16,6 +16,7 @@ import matplotlib
 import numpy as np
 import open3d as o3d
 import plyfile
+import torch
 from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
@@ -24,7 +25,7 @@ from .camera import backproject, intrinsic_matrix, scale_intrinsic
 from .data.sequence import RGBDSequence, check_sequence, evenly_spaced
 from .fusion import fuse_render_with_sensor
 from .settings import FLAG, Settings, count, number, setting
-from .tsdf import TSDFVolume
+from .tsdf import TSDFVolume, level_set_mesh
 
 
 @dataclasses.dataclass
@@ -102,12 +103,32 @@ def uncertainty_colors(sigma: np.ndarray, vmax: float | None = None, cmap: str =
 
 
 def vertex_sigma(mesh: o3d.geometry.TriangleMesh, points: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """(V,) float32 sigma (m) of each mesh vertex: that of the nearest of `points` (M, 3) with
-    `sigma` (M,) (the depth points the mesh was fused from); empty without points."""
+    """(V,) float32 sigma (m) of each mesh vertex: sqrt(s^2 + d^2), s the sigma of the nearest
+    of `points` (M, 3) with `sigma` (M,) (the depth points the mesh was made from) and d the
+    distance to it (a vertex away from every point is no better known than that); NaN without points."""
     vertices = np.asarray(mesh.vertices)
     if not len(points) or not len(vertices):
         return np.full(len(vertices), np.nan, np.float32)
-    return np.asarray(sigma, np.float32)[cKDTree(points).query(vertices)[1]]
+    distance, nearest = cKDTree(points).query(vertices)
+    return np.hypot(np.asarray(sigma, np.float64)[nearest], distance).astype(np.float32)
+
+
+def sdf_surface(recon, cloud: o3d.geometry.PointCloud, voxel_size: float) -> o3d.geometry.TriangleMesh:
+    """The zero level set of a reconstruction's signed distance (geometry="sdf") near the points of
+    `cloud` (:func:`~open3d_pnerf.tsdf.level_set_mesh`), each vertex with the colour of the nearest
+    point (the renders' colour, as the fused mesh has it)."""
+    field, device = recon.field, recon.device
+
+    @torch.no_grad()
+    def signed_distance(points):
+        return field.signed_distance(torch.as_tensor(points, device=device)).cpu().numpy()
+
+    points = np.asarray(cloud.points)
+    mesh = level_set_mesh(signed_distance, points, voxel_size)
+    if mesh.has_vertices() and cloud.has_colors():
+        nearest = cKDTree(points).query(np.asarray(mesh.vertices))[1]
+        mesh.vertex_colors = o3d.utility.Vector3dVector(np.asarray(cloud.colors)[nearest])
+    return mesh
 
 
 def write_mesh_ply(path, mesh: o3d.geometry.TriangleMesh, sigma: np.ndarray | None = None) -> None:
@@ -199,8 +220,9 @@ def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportC
     intr = scale_intrinsic(recon.intrinsic, cfg.scale) if views is None else \
         scale_intrinsic(views.intrinsic, cfg.fused_scale)
     renders = [recon.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
+    level_set = recon if getattr(recon.field, "sdf", None) is not None else None
     if views is None:  # the model alone; its depth filtered by config.max_point_std
-        return _geometry(renders, poses, intrinsic_matrix(intr), cfg, cfg.max_point_std, 1)
+        return _geometry(renders, poses, intrinsic_matrix(intr), cfg, cfg.max_point_std, 1, level_set)
     noise = recon.config.targets.sensor_noise()
     for k, r in enumerate(renders):
         z = _inside_box(views[k].depth, views.K, poses[k], recon.aabb)
@@ -211,7 +233,7 @@ def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportC
         common = np.where(z > 0, noise.systematic_var(fused["depth"]), 0)
         fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
         renders[k] = fused
-    return _geometry(renders, poses, views.K, cfg, np.inf, max(1, round(1 / cfg.scale)))
+    return _geometry(renders, poses, views.K, cfg, np.inf, max(1, round(1 / cfg.scale)), level_set)
 
 
 def sensor_geometry(recon, sequence: RGBDSequence, config: ExportConfig | None = None) -> Geometry:
@@ -246,14 +268,22 @@ def _export_views(recon, sequence: RGBDSequence | None, cfg: ExportConfig):
 
 
 def _geometry(renders: list[dict], poses: np.ndarray, K: np.ndarray, cfg: ExportConfig, max_std: float,
-              stride: int) -> Geometry:
+              stride: int, level_set=None) -> Geometry:
     """The point cloud (every `stride`-th pixel) and mesh of renders (depth filtered by cfg's opacity
-    and `max_std`), each point and vertex with its depth sigma."""
+    and `max_std`), each point and vertex with its depth sigma. The mesh: TSDF fusion of the
+    renders, or the zero level set of the reconstruction `level_set` (geometry="sdf") near the
+    points, where its vertices' sigma is at most cfg.max_point_std."""
     cloud, point_sigma = point_cloud_from_renders(renders, poses, K, cfg.min_opacity, max_std,
                                                   voxel_size=cfg.mesh_voxel_size / 2, stride=stride)
-    mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, max_std,
-                             min_views=cfg.mesh_min_views)
-    return Geometry(mesh, vertex_sigma(mesh, np.asarray(cloud.points), point_sigma), cloud, point_sigma)
+    points = np.asarray(cloud.points)
+    if level_set is None:
+        mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, max_std,
+                                 min_views=cfg.mesh_min_views)
+        return Geometry(mesh, vertex_sigma(mesh, points, point_sigma), cloud, point_sigma)
+    mesh = sdf_surface(level_set, cloud, cfg.mesh_voxel_size)
+    sigma = vertex_sigma(mesh, points, point_sigma)
+    mesh.remove_vertices_by_mask(~(sigma <= cfg.max_point_std))
+    return Geometry(mesh, sigma[sigma <= cfg.max_point_std], cloud, point_sigma)
 
 
 def _inside_box(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, aabb: np.ndarray) -> np.ndarray:

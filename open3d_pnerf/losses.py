@@ -38,6 +38,8 @@ class LossWeights(Settings):
     """Kz: expected-depth L1, per metre of error; at the start of training."""
     dsnerf: float = setting(0.05, number(0))
     """DS-NeRF ray-distribution loss weight (loss="dsnerf" only)."""
+    eikonal: float = setting(0.1, number(0))
+    """Eikonal term mean (|grad sdf| - 1)^2 (geometry="sdf" only; open3d_pnerf.fields.sdf)."""
     distortion: float = setting(0.0, number(0))
     """Mip-NeRF 360's distortion regulariser on every ray's weights (per metre; 0 = off), with
     any loss: pulls each ray's weights into one compact interval."""

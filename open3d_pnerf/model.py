@@ -17,6 +17,7 @@ from torch import nn
 from torch.profiler import record_function
 
 from .batches import RayBatch
+from .fields.sdf import eikonal_loss, eikonal_points
 from .losses import LossMethod, LossWeights, loss_method, total_loss
 from .pose_refinement import PoseCorrections, follow_refinement
 from .rendering import BatchShare, RayRender, Rays, SamplingConfig, make_rays, render_rays
@@ -84,10 +85,19 @@ class PNeRFModel(nn.Module):
 
     def loss(self, renders: list[RayRender], batch: RayBatch, weights: LossWeights,
              n_rays: int | None = None, n_target: int | None = None) -> dict:
-        """Loss terms of :func:`~open3d_pnerf.losses.total_loss`, plus the pose prior when poses
-        are refined. n_rays, n_target: the whole batch's counts when `batch` is one rank's share."""
+        """Loss terms of :func:`~open3d_pnerf.losses.total_loss`, plus the eikonal term of a signed
+        distance field (at points in the box and along the batch's rays) and the pose prior when
+        poses are refined. n_rays, n_target: the whole batch's counts when `batch` is one rank's share."""
         terms = total_loss(self.loss_method, renders, batch.rgb, batch.mean, batch.sigma, weights, n_rays, n_target,
                            batch.weight)
+        sdf = getattr(self.field, "sdf", None)
+        if sdf is not None and weights.eikonal > 0:
+            share = 1.0 if n_rays is None else len(batch) / n_rays
+            rays = self.rays(batch)
+            points = eikonal_points(self.field.aabb, rays.origins.detach(), rays.directions.detach(), rays.near,
+                                    rays.far, max(1, round(sdf.eikonal_points * share)))
+            terms["eikonal"] = eikonal_loss(self.field.signed_distance, points, sdf.eikonal_step)
+            terms["loss"] = terms["loss"] + weights.eikonal * terms["eikonal"] * share
         if self.pose_corrections is not None:  # each share of a batch adds its part of the prior
             share = 1.0 if n_rays is None else len(batch) / n_rays
             terms["pose_prior"] = self.pose_corrections.prior()

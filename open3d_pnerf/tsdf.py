@@ -145,3 +145,37 @@ def tsdf_fusion(
         frame = sequence[i]
         volume.integrate(frame.color, frame.depth, K, poses[i], K_color)
     return volume if return_volume else volume.mesh()
+
+
+def level_set_mesh(signed_distance, near_points: np.ndarray, voxel_size: float, block_resolution: int = 8,
+                   chunk: int = 1 << 18) -> o3d.geometry.TriangleMesh:
+    """The zero level set of a signed distance as a triangle mesh, by Open3D's marching cubes.
+
+    signed_distance: a callable from (M, 3) float32 world points (m) to (M,) signed distances
+    (m, positive in free space), called on at most `chunk` points at a time. It is evaluated at
+    the voxels (edge voxel_size m) of the blocks of `block_resolution` voxels that hold
+    `near_points` (P, 3) m and of their 26 neighbours: the surface is extracted there only.
+    Returns an uncoloured legacy mesh (empty without points or without a zero crossing).
+    """
+    near_points = np.asarray(near_points, np.float64).reshape(-1, 3)
+    near_points = near_points[np.isfinite(near_points).all(1)]
+    if not len(near_points):
+        return o3d.geometry.TriangleMesh()
+    block = voxel_size * block_resolution
+    keys = np.unique(np.floor(near_points / block).astype(np.int64), axis=0)
+    neighbours = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    keys = np.unique((keys[:, None] + neighbours[None]).reshape(-1, 3), axis=0).astype(np.int32)
+    grid = o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight"), attr_dtypes=(o3d.core.float32, o3d.core.float32), attr_channels=((1), (1)),
+        voxel_size=voxel_size, block_resolution=block_resolution, block_count=len(keys))
+    grid.hashmap().activate(o3d.core.Tensor(keys))
+    coords, index = grid.voxel_coordinates_and_flattened_indices()
+    coords = coords.numpy().astype(np.float32)
+    sdf = np.concatenate([np.asarray(signed_distance(coords[i:i + chunk]), np.float32).reshape(-1)
+                          for i in range(0, len(coords), chunk)])
+    if not ((sdf < 0).any() and (sdf > 0).any()):  # no zero crossing (Open3D's extraction fails on none)
+        return o3d.geometry.TriangleMesh()
+    trunc = 3 * voxel_size  # marching cubes reads sdf / trunc in [-1, 1]
+    grid.attribute("tsdf").reshape((-1, 1))[index] = o3d.core.Tensor(np.clip(sdf / trunc, -1, 1)[:, None])
+    grid.attribute("weight").reshape((-1, 1))[index] = o3d.core.Tensor(np.ones((len(sdf), 1), np.float32))
+    return grid.extract_triangle_mesh(weight_threshold=0.5).to_legacy()

@@ -1,4 +1,5 @@
-"""Scene fields (hash grid, dense grid, vanilla NeRF MLP), their input encodings and their settings.
+"""Scene fields (hash grid, dense grid, vanilla NeRF MLP), their input encodings and their settings;
+a grid field's geometry may be a signed distance (sdf).
 Which one a reconstruction uses, and with what settings, is chosen by its config (FIELD_CONFIGS)."""
 
 from .encodings import DenseGridEncoding, FrequencyEncoding, HashGridEncoding
@@ -13,8 +14,9 @@ from .fields import (
     VanillaConfig,
     VanillaNeRFField,
 )
+from .sdf import SDFConfig
 
 __all__ = [
     "DenseGridEncoding", "EncodedField", "FIELD_CONFIGS", "Field", "FrequencyEncoding", "GridConfig", "GridField",
-    "HashGridConfig", "HashGridEncoding", "HashGridField", "VanillaConfig", "VanillaNeRFField",
+    "HashGridConfig", "HashGridEncoding", "HashGridField", "SDFConfig", "VanillaConfig", "VanillaNeRFField",
 ]

@@ -17,6 +17,7 @@ from ..errors import ConfigError
 from ..settings import Rule, Settings, count, one_of, setting
 from . import native
 from .encodings import BACKENDS, DenseGridEncoding, FrequencyEncoding, HashGridEncoding
+from .sdf import SDFConfig, sdf_density
 
 
 def _mlp(in_dim: int, hidden: int, layers: int, out_dim: int) -> nn.Sequential:
@@ -97,26 +98,50 @@ class EncodedField(Field):
     """A grid encoding + small MLPs (Instant-NGP/nerfacto-sized heads).
 
     density = exp(MLP_sigma(enc(x))[0]); colour = sigmoid(MLP_rgb(geo_features, PE(d))).
+    Given `sdf` (an SDFConfig), MLP_sigma's first output is a signed distance instead (m,
+    positive in free space; :meth:`signed_distance`) and density = Psi_beta(-sdf) / beta with a
+    learned sharpness 1 / beta (open3d_pnerf.fields.sdf).
     """
 
     encodes_in_one_pass = True
 
-    def __init__(self, aabb, encoding: nn.Module, hidden: int = 64, geo_features: int = 15, bf16: bool = False):
+    def __init__(self, aabb, encoding: nn.Module, hidden: int = 64, geo_features: int = 15, bf16: bool = False,
+                 sdf: SDFConfig | None = None):
         super().__init__(aabb, bf16)
         self.encoding = encoding
         self.sigma_net = _mlp(encoding.out_dim, hidden, 1, 1 + geo_features)
         self.dir_encoding = FrequencyEncoding(3, 4)
         self.color_net = _mlp(geo_features + self.dir_encoding.out_dim, hidden, 2, 3)
+        self.sdf = sdf
+        if sdf is not None:  # log of the sharpness 1 / beta (1/m); free space (sdf > 0) to begin with
+            self.log_sharpness = nn.Parameter(torch.tensor(float(sdf.sharpness)).log())
+            with torch.no_grad():
+                self.sigma_net[-1].bias[0] = 4 / sdf.sharpness
+
+    @property
+    def beta(self) -> torch.Tensor:
+        """The SDF-to-density law's scale beta (m) = 1 / sharpness, the sharpness capped at sdf.max_sharpness."""
+        return 1 / self.log_sharpness.exp().clamp(max=self.sdf.max_sharpness)
 
     def encode(self, x: torch.Tensor, known: torch.Tensor | None = None) -> torch.Tensor:
         with record_function("pnerf.encoding"):
             return self.encoding(self.normalize(x), known)
 
-    def geometry(self, x: torch.Tensor, encoded: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def _heads(self, x: torch.Tensor, encoded: torch.Tensor | None) -> torch.Tensor:
         encoded = self.encode(x) if encoded is None else encoded
         with record_function("pnerf.mlp"), self.mlp_precision(x):
-            h = self.sigma_net(encoded).float()
-        return density_activation(h[:, 0]) * self.inside(x), h[:, 1:]
+            return self.sigma_net(encoded).float()
+
+    def geometry(self, x: torch.Tensor, encoded: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self._heads(x, encoded)
+        density = density_activation(h[:, 0]) if self.sdf is None else sdf_density(h[:, 0], self.beta)
+        return density * self.inside(x), h[:, 1:]
+
+    def signed_distance(self, x: torch.Tensor) -> torch.Tensor:
+        """(B,) signed distance (m, positive in free space) of world points x (B, 3); sdf fields only."""
+        if self.sdf is None:
+            raise TypeError("signed_distance(): this field has a density, not a signed distance (geometry='sdf')")
+        return self._heads(x, None)[:, 0]
 
     def color(self, features: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         with record_function("pnerf.mlp"), self.mlp_precision(features):
@@ -198,9 +223,9 @@ class HashGridConfig(Settings):
             raise ConfigError(f"config field {prefix}backend='kernel': the fused kernel cannot run here "
                               f"({native.unavailable_reason()}); use backend 'auto' or 'torch'")
 
-    def build(self, aabb, bf16: bool = False) -> HashGridField:
+    def build(self, aabb, bf16: bool = False, sdf: SDFConfig | None = None) -> HashGridField:
         return HashGridField(aabb, self.levels, self.features, self.log2_table_size, self.max_resolution,
-                             self.backend, bf16=bf16)
+                             self.backend, bf16=bf16, sdf=sdf)
 
 
 @dataclasses.dataclass
@@ -214,8 +239,8 @@ class GridConfig(Settings):
     features: int = setting(2, count(1))
     """Features per level (memory: sum R^3 * features floats, x4 with Adam)."""
 
-    def build(self, aabb, bf16: bool = False) -> GridField:
-        return GridField(aabb, resolutions=self.resolutions, features=self.features, bf16=bf16)
+    def build(self, aabb, bf16: bool = False, sdf: SDFConfig | None = None) -> GridField:
+        return GridField(aabb, resolutions=self.resolutions, features=self.features, bf16=bf16, sdf=sdf)
 
 
 @dataclasses.dataclass

@@ -1,0 +1,127 @@
+"""`make demo`'s numbers as a regression test: run the demo exactly as a user does and keep its
+held-out scores.
+
+Runs the installed command line, ``open3d-pnerf demo --out <temporary folder>`` (the bundled TUM
+sample: tracked poses, the `fast` preset, every 4th frame held out), `--runs` times in a row, and
+reads its report.json: the model's held-out PSNR and SSIM, depth on the pixels every method
+covers, the exported mesh's coverage, the same for the sensor alone and the TSDF, tracking ATE and
+training time. Writes results/<name>.json and .md. Against the result file it replaces (the
+committed one), a held-out PSNR lower by more than --tolerance dB, or a coverage lower by more
+than 0.01, fails the run (exit status 1) and says which; the .md says whether the held-out PSNR
+reaches --target dB.
+Needs no shared data; about 4 minutes a run on 2 cores.
+
+    python benchmarks/bench_demo.py [--runs 1] [--tolerance 1.0] [--target 25] [--name demo]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_suite import OUT, machine
+
+KEYS = {  # report key: (method, metric)
+    "psnr": ("model", "psnr"), "ssim": ("model", "ssim"), "psnr_common": ("model", "psnr_common"),
+    "model_depth_l1_common_m": ("model", "depth_l1_common"), "mesh_depth_l1_common_m": ("mesh", "depth_l1_common"),
+    "sensor_depth_l1_common_m": ("sensor", "depth_l1_common"), "tsdf_depth_l1_common_m": ("tsdf", "depth_l1_common"),
+    "common_share": ("model", "common_share"), "mesh_coverage": ("mesh", "coverage"),
+    "tsdf_coverage": ("tsdf", "coverage"), "mesh_depth_l1_hits_m": ("mesh", "depth_l1_hits"),
+    "tsdf_depth_l1_hits_m": ("tsdf", "depth_l1_hits"), "tsdf_psnr_hits": ("tsdf", "psnr_hits"),
+    "model_only_share": ("model", "only_share"), "within_3_only": ("model", "within_3_only"),
+}
+
+
+def run_demo(out: Path) -> dict:
+    """One `open3d-pnerf demo` into `out`; its numbers (KEYS, ATE, training, wall time)."""
+    exe = shutil.which("open3d-pnerf", path=str(Path(sys.executable).parent))
+    if exe is None:
+        sys.exit("open3d-pnerf is not installed in this Python's environment (make install)")
+    t0 = time.perf_counter()
+    subprocess.run([exe, "demo", "--out", str(out)], check=True, stdout=subprocess.DEVNULL)
+    wall = time.perf_counter() - t0
+    report = json.loads((out / "report.json").read_text())
+    scores = report["scores"]
+    row = {key: scores[m][k] for key, (m, k) in KEYS.items() if k in scores.get(m, {})}
+    return {**row, "ate_rmse_m": report["ate_rmse_m"], "train_s": report["training"]["seconds"],
+            "steps": report["training"]["steps"], "wall_s": round(wall, 1)}
+
+
+def mean(key: str, runs: list[dict]) -> float:
+    return float(np.mean([r[key] for r in runs]))
+
+
+def regressions(runs: list[dict], before: dict | None, tolerance: float) -> list[str]:
+    """What got worse against the committed result `before` (None: nothing to compare)."""
+    out = []
+    if before:
+        if mean("psnr", runs) < mean("psnr", before["runs"]) - tolerance:
+            out.append(f"held-out PSNR {mean('psnr', runs):.2f} dB, was {mean('psnr', before['runs']):.2f} dB "
+                       f"(commit {before['meta']['commit']})")
+        if mean("mesh_coverage", runs) < mean("mesh_coverage", before["runs"]) - 0.01:
+            out.append(f"mesh coverage {mean('mesh_coverage', runs):.3f}, was {mean('mesh_coverage', before['runs']):.3f}")
+    return out
+
+
+def markdown(result: dict) -> str:
+    runs, meta = result["runs"], result["meta"]
+    rows = [("held-out PSNR (dB)", "psnr", 1, ".2f"), ("held-out SSIM", "ssim", 1, ".3f"),
+            ("PSNR on common pixels (dB)", "psnr_common", 1, ".2f"),
+            ("depth L1 on common pixels: model (mm)", "model_depth_l1_common_m", 1000, ".1f"),
+            ("  exported mesh (mm)", "mesh_depth_l1_common_m", 1000, ".1f"),
+            ("  sensor alone (mm)", "sensor_depth_l1_common_m", 1000, ".1f"),
+            ("  TSDF, same threshold (mm)", "tsdf_depth_l1_common_m", 1000, ".1f"),
+            ("common pixels (share of sensor pixels)", "common_share", 1, ".3f"),
+            ("depth L1 on its hits: mesh / TSDF (mm)", ("mesh_depth_l1_hits_m", "tsdf_depth_l1_hits_m"), 1000, ".1f"),
+            ("coverage: mesh / TSDF", ("mesh_coverage", "tsdf_coverage"), 1, ".3f"),
+            ("TSDF PSNR on its hits (dB)", "tsdf_psnr_hits", 1, ".2f"),
+            ("pixels only the model covers (share)", "model_only_share", 1, ".3f"),
+            ("errors within the 99.7% interval there", "within_3_only", 1, ".3f"),
+            ("tracking ATE RMSE (mm)", "ate_rmse_m", 1000, ".1f"), ("training (s)", "train_s", 1, ".0f"),
+            ("training steps", "steps", 1, ".0f"), ("demo wall time (s)", "wall_s", 1, ".0f")]
+    lines = [f"`open3d-pnerf demo` (bundled TUM sample, tracked poses, `fast` preset), {len(runs)} run(s) at commit "
+             f"{meta['commit']}; {meta['machine']}.", "", "| | " + " | ".join(f"run {i + 1}" for i in range(len(runs)))
+             + " |", "|" + " --- |" * (len(runs) + 1)]
+    for label, keys, factor, fmt in rows:
+        keys = keys if isinstance(keys, tuple) else (keys,)
+        cells = [" / ".join(format(factor * r[k], fmt) if r.get(k) is not None else "-" for k in keys) for r in runs]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines += ["", f"Target: held-out PSNR at least {meta['target']:g} dB: "
+              + ("met." if mean("psnr", runs) >= meta["target"] else f"missed ({mean('psnr', runs):.2f} dB)."),
+              "Regressions against the previous result file: " + ("; ".join(result["regressions"]) or "none.")]
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=int, default=1)
+    ap.add_argument("--tolerance", type=float, default=1.0, help="allowed held-out PSNR drop (dB)")
+    ap.add_argument("--target", type=float, default=25.0, help="held-out PSNR the demo should reach (dB)")
+    ap.add_argument("--name", default="demo")
+    args = ap.parse_args()
+    path = OUT / f"{args.name}.json"
+    before = json.loads(path.read_text()) if path.is_file() else None
+    runs = []
+    for i in range(args.runs):
+        with tempfile.TemporaryDirectory() as tmp:
+            runs.append(run_demo(Path(tmp) / "demo"))
+        print(f"run {i + 1}: " + ", ".join(f"{k} {v:.4g}" for k, v in runs[-1].items() if v is not None), flush=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip()
+    result = {"meta": {"commit": commit, "machine": machine(), "target": args.target}, "runs": runs,
+              "regressions": regressions(runs, before, args.tolerance)}
+    path.write_text(json.dumps(result, indent=1))
+    (OUT / f"{args.name}.md").write_text(markdown(result))
+    print(markdown(result))
+    sys.exit(1 if result["regressions"] else 0)
+
+
+if __name__ == "__main__":
+    main()
