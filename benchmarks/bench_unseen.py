@@ -1,0 +1,104 @@
+"""Where the depth-error law's unseen term comes from (open3d_pnerf.error_law.UNSEEN, UNSEEN_RAMP).
+
+Trains one reconstruction (the `fast` preset, GT poses, every 4th frame held out, seed 0) on the
+tuning scene, TUM fr1/xyz, and on the held-out frames collects the field's depth error against
+the sensor, its sigma without the unseen term, the z-depth and the rendered point's distance to
+the training frames' observed surfaces, on two pixel sets: the pixels only the model covers (the
+sensor-alone mesh misses them) and the pixels both cover. Then tabulates, for a grid of (unseen,
+unseen_ramp), the share of errors inside the law's 99.7% interval and the mean negative
+log-likelihood on both sets: the chosen values should hold 99% where only the model covers and
+leave the common pixels' calibration as it was. `--dataset 7scenes` checks the choice elsewhere.
+
+    python benchmarks/bench_unseen.py [--dataset tum] [--name unseen]
+
+Writes benchmarks/results/<name>.json and .md; about 4 minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+from bench_suite import OUT, load, machine, poses_for
+
+UNSEEN = (0.0, 0.2, 0.3, 0.5)
+RAMPS = (0.01, 0.02, 0.05)
+
+
+def collect(dataset: str) -> tuple[dict, object]:
+    """{set: {err, sigma (law without the unseen term), z, distance}} over the held-out frames."""
+    import open3d_pnerf as pn
+    from open3d_pnerf.camera import backproject
+    from open3d_pnerf.evaluation import heldout_views
+    from open3d_pnerf.export import sensor_geometry
+
+    cache = OUT / "cache"
+    seq, _ = load(dataset, cache)
+    poses, covs = poses_for(dataset, seq, "gt", cache)
+    cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, seed=0, progress=False)
+    recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
+    law, observed = recon.depth_error, recon.observed
+    recon.observed = None  # renders with the law's sigma alone; distances computed here
+    K = seq.scaled_by(cfg.image_scale).K
+    rows = {"only": [], "common": []}
+    for v in heldout_views(recon, seq, {"sensor": sensor_geometry(recon, seq).mesh}):
+        model, gt = v["model"], v["depth"]
+        covers = (model["opacity"] >= cfg.export.min_opacity) & (gt > 0)
+        hit = v["surfaces"]["sensor"]["hit"]
+        for name, mask in (("only", covers & ~hit), ("common", covers & hit)):
+            points = backproject(model["depth"], K, recon.poses[v["index"]], mask)[0]
+            rows[name].append(np.stack([np.abs(model["depth"] - gt)[mask], model["depth_std"][mask],
+                                        model["depth"][mask], observed.distance(points)]))
+    data = {name: dict(zip(("err", "sigma", "z", "distance"), np.concatenate(r, 1))) for name, r in rows.items()}
+    return data, law
+
+
+def score(data: dict, law, unseen: float, ramp: float) -> dict:
+    """Share within the 99.7% interval and mean NLL of each pixel set under the law with this unseen term."""
+    law = dataclasses.replace(law, unseen=unseen, unseen_ramp=ramp)
+    spread_free = dataclasses.replace(law, scale=1.0, floor=0.0)  # sigma already holds scale and floor
+    out = {}
+    for name, d in data.items():
+        sigma = np.sqrt(d["sigma"] ** 2 + spread_free.sigma(0 * d["z"], d["z"], d["distance"]) ** 2)
+        out[name] = {"within_3": float(np.mean(d["err"] <= law.interval(0.9973002039367398) * sigma)),
+                     "nll": float(np.mean(law.nll(d["err"], sigma))), "median_sigma_mm": 1000 * float(np.median(sigma))}
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset", default="tum")
+    ap.add_argument("--name", default="unseen")
+    args = ap.parse_args()
+    data, law = collect(args.dataset)
+    grid = [{"unseen": u, "unseen_ramp": r, **score(data, law, u, r)} for u in UNSEEN for r in (RAMPS if u else RAMPS[:1])]
+    sizes = {name: len(d["err"]) for name, d in data.items()}
+    quantiles = {name: {"distance_mm": [1000 * float(q) for q in np.quantile(d["distance"], [0.5, 0.9])],
+                        "error_mm": [1000 * float(q) for q in np.quantile(d["err"], [0.5, 0.9])]}
+                 for name, d in data.items()}
+    result = {"meta": {"dataset": args.dataset, "machine": machine(), "law": {"scale": law.scale, "floor": law.floor,
+                                                                             "dof": law.dof}},
+              "pixels": sizes, "quantiles": quantiles, "grid": grid}
+    (OUT / f"{args.name}.json").write_text(json.dumps(result, indent=1))
+    lines = [f"{args.dataset}, `fast` preset, GT poses, seed 0, held-out frames; {machine()}. Pixels only the model "
+             f"covers: {sizes['only']} (distance to the observed surfaces median / 90%: "
+             f"{quantiles['only']['distance_mm'][0]:.0f} / {quantiles['only']['distance_mm'][1]:.0f} mm; error "
+             f"{quantiles['only']['error_mm'][0]:.0f} / {quantiles['only']['error_mm'][1]:.0f} mm); both cover: "
+             f"{sizes['common']} (distance {quantiles['common']['distance_mm'][0]:.0f} / "
+             f"{quantiles['common']['distance_mm'][1]:.0f} mm).", "",
+             "| unseen | ramp (mm) | only: within 99.7% | only: NLL | only: median sigma (mm) | common: within 99.7% | "
+             "common: NLL | common: median sigma (mm) |", "|" + " --- |" * 8]
+    for g in grid:
+        o, c = g["only"], g["common"]
+        lines.append(f"| {g['unseen']:g} | {1000 * g['unseen_ramp']:g} | {o['within_3']:.4f} | {o['nll']:.2f} | "
+                     f"{o['median_sigma_mm']:.0f} | {c['within_3']:.4f} | {c['nll']:.3f} | {c['median_sigma_mm']:.1f} |")
+    (OUT / f"{args.name}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    Path(OUT).mkdir(exist_ok=True)
+    main()
