@@ -4,8 +4,10 @@ depth sigma, meshes with per-vertex depth sigma, PLY files; and the export's set
 Both come from renders at the training views (fused with the sensor's depth where there is
 one: :func:`open3d_pnerf.fusion.fuse_render_with_sensor`): points are back-projected depth
 kept where opacity is high and depth_std small; the mesh is Open3D TSDF fusion of the
-same depth and colour, so no floater outside the observed frustums survives; each vertex
-takes the sigma of the nearest of those points.
+same depth and colour, so no floater outside the observed frustums survives (with
+geometry="sdf", the field's zero level set near those points instead); each vertex takes the
+sigma of the nearest of those points, widened by its distance to it. :func:`sensor_geometry` is
+the same export without the model, the comparison's sensor-alone baseline.
 """
 
 from __future__ import annotations
