@@ -8,7 +8,7 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from .camera import camera_rays, pixel_coordinates
+from .camera import pixel_coordinates
 from .data.sequence import RGBDSequence, evenly_spaced
 from .error_law import GAUSSIAN_SHARES, depth_nll, sigma_multiple
 from .errors import InputError
@@ -256,10 +256,8 @@ def training_depth_errors(recon, sequence: RGBDSequence, frames: int = 8,
         out = recon.render_pixels(recon.poses[i], seq.intrinsic, *(torch.as_tensor(c, dtype=torch.float32,
                                                                                    device=recon.device) for c in (u, v)))
         ok = out["opacity"] > 0.5
-        unseen = np.zeros(ok.sum())
-        if recon.observed is not None:
-            points = camera_rays(seq.K, u[ok], v[ok]) * out["depth"][ok, None]
-            unseen = recon.observed.distance(points @ recon.poses[i][:3, :3].T + recon.poses[i][:3, 3])
+        unseen = recon.unseen_distance(recon.poses[i], seq.K, u[ok], v[ok], out["depth"][ok])
+        unseen = np.zeros(ok.sum()) if unseen is None else unseen
         rows.append((np.abs(out["depth"] - depth[pix])[ok], np.maximum(out["depth_std"][ok], 1e-6), depth[pix][ok],
                      unseen))
     return tuple(np.concatenate(a) for a in zip(*rows)) if rows else (np.zeros(0),) * 4

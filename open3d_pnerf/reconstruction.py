@@ -17,7 +17,7 @@ import open3d as o3d
 import torch
 
 from . import storage
-from .camera import camera_pose, camera_rays, check_intrinsic, intrinsic_matrix, pose_to_extrinsic
+from .camera import camera_pose, check_intrinsic, intrinsic_matrix, pose_to_extrinsic, unproject
 from .config import ReconstructionConfig
 from .data.nerfstudio import write_nerfstudio
 from .data.sequence import RGBDSequence, check_sequence
@@ -151,10 +151,8 @@ class Reconstruction:
         h, w = intrinsic.height, intrinsic.width
         v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
         out = self.render_pixels(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float(), chunk)
-        unseen = None
-        if self.observed is not None:
-            rays = camera_rays(intrinsic_matrix(intrinsic), u.reshape(-1).cpu().numpy(), v.reshape(-1).cpu().numpy())
-            unseen = self.observed.distance((rays * out["depth"][:, None]) @ pose[:3, :3].T + pose[:3, 3])
+        unseen = self.unseen_distance(pose, intrinsic_matrix(intrinsic), u.reshape(-1).cpu().numpy(),
+                                      v.reshape(-1).cpu().numpy(), out["depth"])
         out["depth_std"] = self.depth_error.sigma(out["depth_std"], out["depth"], unseen).astype(np.float32)
         if frame is not None:
             if not (isinstance(frame, (int, np.integer)) and 0 <= frame < len(self.poses)):
@@ -170,6 +168,15 @@ class Reconstruction:
         return {"color": out["color"].clamp(0, 1).cpu().numpy(), "depth": (out["depth"] / rays.norms).cpu().numpy(),
                 "depth_std": (out["depth_var"].sqrt() / rays.norms).cpu().numpy(),
                 "opacity": out["opacity"].cpu().numpy()}
+
+    def unseen_distance(self, pose: np.ndarray, K: np.ndarray, u: np.ndarray, v: np.ndarray,
+                        depth: np.ndarray) -> np.ndarray | None:
+        """(R,) distance (m) from the points of pixels (u, v) (R,) at z-depths `depth` (R,) m of a
+        camera-to-world pose (4, 4) with intrinsic matrix K (3, 3) to the surfaces the training
+        frames' depth observed (:attr:`observed`); None without them."""
+        if self.observed is None:
+            return None
+        return self.observed.distance(unproject(K, u, v, depth) @ pose[:3, :3].T + pose[:3, 3])
 
     def depth_pdf(self, pose, pixels_uv, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None) -> dict:
         """The model's depth distribution along the rays of R pixels, in z-depth metres.
