@@ -33,6 +33,8 @@ METHODS = {"model": "model (the field's renders)", "mesh": "exported mesh (senso
            "sensor": "sensor alone (the export without the model)", "tsdf": "Open3D TSDF, same threshold",
            "tsdf_default": f"Open3D TSDF, its default threshold (> {OPEN3D_WEIGHT_THRESHOLD:g} views)"}
 """The compared methods by their keys in Comparison.table, with their labels."""
+FIGURE_ROWS = {"mesh": "exported mesh", "tsdf": "TSDF"}
+"""The surfaces a held-out frame's figure shows below the input and the model, with their row labels."""
 SENSOR_BASED = ("sensor", "tsdf")  # "only" pixels: covered by the model (or its mesh) and by neither of these
 REFERENCE_ROWS = ("tsdf_default",)  # shown, but not part of the common pixels
 ROWS = [  # label, key, factor, format
@@ -181,7 +183,7 @@ def comparison_figure(item: dict):
         ("input", item["color"], np.where(valid, gt, np.nan) if valid.any() else None, None, None),
         ("model", model["color"], model["depth"], model_err, model["depth_std"]),
     ]
-    for name, label in (("mesh", "exported mesh"), ("tsdf", "TSDF")):
+    for name, label in FIGURE_ROWS.items():
         surface = item["surfaces"].get(name)
         if surface is not None:
             rows.append((label, surface["color"], np.where(surface["hit"], surface["depth"], np.nan),

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .comparison import scores_table
+from .comparison import FIGURE_ROWS, scores_table
 
 
 def report_markdown(report: dict, recon) -> str:
@@ -27,7 +27,6 @@ def report_markdown(report: dict, recon) -> str:
                       "own hits, and where only the model (or its mesh) covers; the sensor alone is the export "
                       "without the model; the TSDFs are Open3D's of the same training frames and poses (the first "
                       "at the exported mesh's threshold).", ""]
-        shown = ", ".join(["input", "model"] + [label for name, label in (("mesh", "exported mesh"), ("tsdf", "TSDF"))
-                                                if name in scores])
+        shown = ", ".join(["input", "model"] + [label for name, label in FIGURE_ROWS.items() if name in scores])
         lines += [*scores_table(scores), "", *(f"![held-out frame: {shown}]({name})" for name in report["figures"])]
     return "\n".join(lines) + "\n"
