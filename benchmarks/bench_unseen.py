@@ -11,7 +11,7 @@ leave the common pixels' calibration as it was. `--dataset 7scenes` checks the c
 
     python benchmarks/bench_unseen.py [--dataset tum] [--name unseen]
 
-Writes benchmarks/results/<name>.json and .md; about 4 minutes.
+Writes benchmarks/results/<name>.json and .md.
 """
 
 from __future__ import annotations
