@@ -1,4 +1,4 @@
-"""The `open3d-pnerf` command line: demo, reconstruct, track, tsdf, render, evaluate.
+"""The `open3d-pnerf` command line: demo, reconstruct, extend, track, tsdf, render, evaluate.
 
 Errors a user can fix are printed as one line (`open3d-pnerf: error: ...`) with exit code 2;
 Ctrl-C exits with 130 after training has written its checkpoint. `reconstruct` and `demo`
@@ -30,7 +30,7 @@ from .evaluation import heldout_scores
 from .export import write_mesh_ply, write_point_cloud_ply
 from .fields import FIELD_CONFIGS
 from .losses import LOSSES
-from .pipeline import RUN_CONFIG, read_run_config, reconstruct_folder, resolve_poses
+from .pipeline import RUN_CONFIG, extend_folder, read_run_config, reconstruct_folder, resolve_poses
 from .reconstruction import Reconstruction
 from .tracking import absolute_trajectory_error
 from .tsdf import tsdf_fusion
@@ -59,6 +59,11 @@ def _load(args):
 
 
 def _config(args):
+    return ReconstructionConfig.preset(args.preset, **_overrides(args))
+
+
+def _overrides(args) -> dict:
+    """The config fields the training options set (only those given), with progress."""
     overrides = {k: v for k, v in {
         "loss": args.loss, "field": args.field, "device": args.device, "max_steps": args.max_steps,
         "time_budget_s": args.time_budget, "holdout_every": args.holdout_every, "seed": args.seed,
@@ -68,7 +73,7 @@ def _config(args):
     }.items() if v is not None}
     overrides.update(config_overrides(args.set or []))
     overrides["progress"] = not args.quiet
-    return ReconstructionConfig.preset(args.preset, **overrides)
+    return overrides
 
 
 def _gt_poses(seq, args):
@@ -119,6 +124,14 @@ def cmd_reconstruct(args) -> int:
                                 inputs=_inputs(args))
     if report is not None and not args.quiet:
         print((out / "report.md").read_text())
+    return EXIT_OK
+
+
+def cmd_extend(args) -> int:
+    seq = _load(args)
+    extend_folder(args.dir, seq, args.out, _overrides(args), _gt_poses(seq, args), inputs=_inputs(args))
+    if not args.quiet:
+        print((Path(args.out) / "report.md").read_text())
     return EXIT_OK
 
 
@@ -183,17 +196,21 @@ def cmd_evaluate(args) -> int:
     config_path = folder / RUN_CONFIG
     saved = read_run_config(folder, "evaluate") if config_path.is_file() else {}
     recorded = args.data is None
-    if recorded:
-        if "data" not in saved:
-            raise InputError(f"{folder}: no run_config.json names its data (saved from Python?); pass --data DATA")
-        args.data = saved["data"]
-    args.frames, args.depth_trunc = saved.get("frames"), saved.get("depth_trunc") or 0.0
-    try:
-        seq = _load(args)
-    except DatasetError as exc:
-        if not recorded:
-            raise
-        raise DatasetError(f"{exc} (recorded in {config_path}; pass --data DATA if it moved)") from None
+    if recorded and "data" not in saved and recon.frames is not None:  # saved from Python: its own frames
+        seq = recon.frames
+    else:
+        if recorded:
+            if "data" not in saved:
+                raise InputError(f"{folder}: neither a run_config.json naming its data nor its frames (saved from "
+                                 "Python with frames=False?); pass --data DATA")
+            args.data = saved["data"]
+        args.frames, args.depth_trunc = saved.get("frames"), saved.get("depth_trunc") or 0.0
+        try:
+            seq = _load(args)
+        except DatasetError as exc:
+            if not recorded:
+                raise
+            raise DatasetError(f"{exc} (recorded in {config_path}; pass --data DATA if it moved)") from None
     if len(seq) != len(recon.poses):
         raise InputError(f"--data {args.data}: {len(seq)} frames, but {folder} reconstructed {len(recon.poses)}")
     if args.tsdf:
@@ -210,9 +227,11 @@ def cmd_evaluate(args) -> int:
     return EXIT_OK
 
 
-def _add_training_options(p):
+def _add_training_options(p, preset: bool = True):
     defaults = ReconstructionConfig()
-    p.add_argument("--preset", default="fast", choices=list(ReconstructionConfig.PRESETS), help="configuration preset")
+    if preset:
+        p.add_argument("--preset", default="fast", choices=list(ReconstructionConfig.PRESETS),
+                       help="configuration preset")
     p.add_argument("--loss", choices=LOSSES, help=f"training loss (default {defaults.loss})")
     p.add_argument("--field", choices=list(FIELD_CONFIGS), help=f"scene field (default {defaults.field})")
     p.add_argument("--device", help="torch device: cpu, cuda, cuda:1 (default cpu)")
@@ -262,6 +281,17 @@ def build_parser() -> argparse.ArgumentParser:
     _add_training_options(p)
     p.set_defaults(func=cmd_reconstruct)
 
+    p = sub.add_parser("extend", help="add frames to a saved reconstruction (tracked onto its map) and train further",
+                       description="Track the frames of DATA onto the map saved in DIR (or take --gt-poses in the "
+                       "map's world frame), build the depth targets of all frames, train the map's field further on "
+                       "old and new frames (by default for 30%% of the map's own training budget), then export and "
+                       "compare with TSDF fusion into --out. DIR is left unchanged; an extended folder extends again.")
+    p.add_argument("dir", help="a saved reconstruction (reconstruct, demo or extend output folder)")
+    _add_data_options(p)
+    p.add_argument("--out", required=True, help="output folder of the extended reconstruction")
+    _add_training_options(p, preset=False)
+    p.set_defaults(func=cmd_extend)
+
     p = sub.add_parser("track", help="RGB-D odometry + pose graph: trajectory (TUM, .log, Open3D JSON) and covariances")
     _add_data_options(p)
     p.add_argument("--out", required=True, help="output folder")
@@ -284,7 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "and sensor depth (PSNR, SSIM, depth L1, depth calibration); with --tsdf also an Open3D TSDF "
                        "fused from the same training frames and poses. Prints a table and writes JSON.")
     p.add_argument("dir", help="a reconstruct (or demo, or Reconstruction.save) output folder")
-    p.add_argument("--data", help="dataset folder or 'sample' (default: the one recorded in DIR/run_config.json)")
+    p.add_argument("--data", help="dataset folder or 'sample' (default: the one recorded in DIR/run_config.json, "
+                   "else the frames saved in DIR)")
     p.add_argument("--out", help="output JSON (default DIR/evaluation.json)")
     p.add_argument("--tsdf", action=argparse.BooleanOptionalAction, default=True,
                    help="also score the TSDF baseline (default: yes)")

@@ -20,7 +20,7 @@ import torch
 
 from .errors import ConfigError
 from .export import ExportConfig
-from .fields import FIELD_CONFIGS, GridConfig, HashGridConfig, SDFConfig, VanillaConfig
+from .fields import FIELD_CONFIGS, EncodedField, GridConfig, HashGridConfig, SDFConfig, VanillaConfig, grow
 from .losses import LOSSES, ObjectiveConfig
 from .rendering.volume import SamplingConfig
 from .settings import FLAG, Rule, Settings, count, number, one_of, optional, section, setting
@@ -136,12 +136,19 @@ class ReconstructionConfig(Settings):
         """The sub-config of the chosen field type (HashGridConfig, GridConfig or VanillaConfig)."""
         return getattr(self, self.field)
 
-    def build_field(self, aabb):
-        """The chosen field over the scene box aabb (2, 3) metres, on `device`, initialised from `seed`."""
+    def build_field(self, aabb, blocks=None):
+        """The chosen field over the scene box aabb (2, 3) metres, on `device`, initialised from `seed`;
+        blocks: the (K, 2, 3) boxes of a field that grew (see fields.grow), the last one aabb."""
         torch.manual_seed(self.seed)
         try:
             sdf = {"sdf": self.sdf} if self.geometry == "sdf" else {}
-            field = self.field_config.build(torch.as_tensor(aabb), bf16=self.runtime.bf16_mlp, **sdf)
+            build = lambda box: self.field_config.build(torch.as_tensor(box), bf16=self.runtime.bf16_mlp, **sdf)  # noqa: E731
+            field = build(aabb if blocks is None else blocks[0])
+            if blocks is not None:
+                if not isinstance(field, EncodedField):
+                    raise ConfigError(f"config field field={self.field!r}: only a grid field can grow its box")
+                for box in blocks[1:]:
+                    grow(field, box, build(box).encoding)
             return field.to(torch.device(self.device))
         except (RuntimeError, AssertionError) as exc:
             raise ConfigError(f"config field device={self.device!r} is not usable here ({exc})") from None

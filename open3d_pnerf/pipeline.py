@@ -8,12 +8,14 @@ ReconstructionConfig (``config.tracking.track``, ``config.targets.build``, ...).
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm.auto import tqdm
 
 from ._files import atomic_write, atomic_write_all, read_json_object
@@ -21,15 +23,16 @@ from .batches import RayBatcher, heldout_rays
 from .camera import camera_poses
 from .comparison import Comparison, compare
 from .config import ReconstructionConfig
-from .data.sequence import RGBDSequence, check_sequence, evenly_spaced
+from .data.sequence import RGBDSequence, check_sequence, concatenate, evenly_spaced
 from .distributed import DistributedContext, distributed_session
-from .errors import CheckpointError, InputError, TrainingInterrupted
+from .errors import CheckpointError, ConfigError, InputError, TrainingInterrupted
 from .export import export_geometry
+from .fields import EncodedField, grow
 from .model import build_model
 from .observed import ObservedSurface
 from .reconstruction import Reconstruction
 from .report import report_markdown
-from .scene import depth_range, training_box
+from .scene import BOX_MARGIN, depth_range, training_box
 from .targets.storage import storage_dir
 from .tracking import absolute_trajectory_error
 from .training import Trainer, read_checkpoint
@@ -38,14 +41,15 @@ RUN_CONFIG = "run_config.json"
 
 
 # -- frames --------------------------------------------------------------------------------------
-def split_frames(n: int, holdout_every: int, train_views: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def split_frames(n: int, holdout_every: int, train_views: int = 0, min_train: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """(train, holdout) frame indices: every holdout_every-th frame (0, k, 2k, ...) held out;
-    train_views > 0 keeps that many of the others, evenly spaced (the held-out set is unchanged)."""
+    train_views > 0 keeps that many of the others, evenly spaced (the held-out set is unchanged);
+    InputError when fewer than `min_train` frames train."""
     idx = np.arange(n)
     hold = idx % holdout_every == 0 if holdout_every > 0 else np.zeros(n, bool)
     train = idx[~hold]
-    if len(train) < 2:
-        raise InputError(f"holdout_every={holdout_every} leaves fewer than 2 training frames of {n}")
+    if len(train) < min_train:
+        raise InputError(f"holdout_every={holdout_every} leaves fewer than {min_train} training frames of {n}")
     if train_views:
         if train_views > len(train):
             raise InputError(f"train_views={train_views} but only {len(train)} frames are not held out")
@@ -119,6 +123,19 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     timings["tracking_s"] = round(time.perf_counter() - t0, 2)
     stages.update(1)
 
+    return fit(sequence, config, poses, covariances, train_idx, hold_idx, tracking, timings, stages, t0,
+               checkpoint_dir=checkpoint_dir, checkpoint=checkpoint, dist=dist, export=export)
+
+
+def fit(sequence: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray, covariances: np.ndarray,
+        train_idx: np.ndarray, hold_idx: np.ndarray, tracking: dict, timings: dict, stages, t0: float,
+        checkpoint_dir=None, checkpoint: dict | None = None, dist: DistributedContext | None = None,
+        export: bool = True, base: Reconstruction | None = None) -> Reconstruction:
+    """The stages after the poses: depth targets and the scene box, training, calibration and export,
+    on the frames train_idx of `sequence` with `poses` (N, 4, 4) and `covariances` (N, 6, 6).
+    base: a reconstruction whose field training continues (its box grown by a new block when the
+    frames reach outside it); None trains a new field. stages: the tqdm bar of :func:`run`."""
+    dist = dist or DistributedContext()
     stages.set_postfix_str("depth targets")  # built for every loss: they also bound the scene box
     t1 = time.perf_counter()
     train_seq = sequence.select(train_idx).scaled_by(config.image_scale)
@@ -126,6 +143,9 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
                           f"targets-rank{dist.rank}" if dist.enabled else "targets")
     targets = config.targets.build(train_seq, poses[train_idx], covariances[train_idx], storage, config.progress)
     box = training_box(train_seq, targets, poses[train_idx])
+    field = None
+    if base is not None:
+        box, field = continued_field(base, box, config)
     aabb = dist.broadcast_array(box, "the scene box's broadcast", config.device)
     observed = None
     if train_seq.has_depth:  # what the sensor saw: the model's depth is widened away from it
@@ -135,7 +155,8 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     stages.update(1)
 
     stages.set_postfix_str("training")
-    model = build_model(config, aabb, poses[train_idx], train_seq.K, covariances[train_idx], depth_range(train_seq))
+    model = build_model(config, aabb, poses[train_idx], train_seq.K, covariances[train_idx], depth_range(train_seq),
+                        field=field)
     batcher = RayBatcher(train_seq, targets, model.device, config.seed, config.runtime.cache_frames,
                          target_share=config.optimizer.target_ray_share)
     eval_rays = None
@@ -157,10 +178,15 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
             shutil.rmtree(storage, ignore_errors=True)
     stages.update(1)
     poses, gains = model.frames_after_training(poses, sequence.timestamps, train_idx, hold_idx)
+    stats = {"tracking": tracking, "training": train_stats, "history": history, "targets": targets_summary,
+             "timings": timings}
+    if base is not None:
+        stats["extended"] = [*base.stats.get("extended", []),
+                             {"frames_before": len(base.poses), "frames_added": len(poses) - len(base.poses),
+                              "box_grown": bool((aabb != base.aabb).any())}]
     recon = Reconstruction(model, config, poses, covariances, train_seq.intrinsic, train_idx, hold_idx,
-                           timestamps=sequence.timestamps, color_gains=gains, observed=observed,
-                           stats={"tracking": tracking, "training": train_stats, "history": history,
-                                  "targets": targets_summary, "timings": timings})
+                           timestamps=sequence.timestamps, color_gains=gains, observed=observed, frames=sequence,
+                           stats=stats)
     if dist.is_main and export:  # rank 0 calibrates the depth sigma on training frames and exports
         stages.set_postfix_str("export")
         t2 = time.perf_counter()
@@ -204,6 +230,75 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
     config = checked_config(config)
     with distributed_session(config.device, config.runtime.dist_backend, config.runtime.dist_timeout_s) as dist:
         return run(rgbd_sequence, config, poses, covariances, checkpoint_dir, resume, dist)
+
+
+# -- extending a map --------------------------------------------------------------------------------
+EXTENSION_BUDGET = 0.3
+"""An extension's default training budget: this share of the map's own max_steps and time_budget_s
+(the field starts trained; the old frames are replayed with the new ones)."""
+
+
+def extend(base: Reconstruction, sequence: RGBDSequence, config: ReconstructionConfig | None = None, poses=None,
+           covariances=None) -> Reconstruction:
+    """A new reconstruction: `base` with the frames of `sequence` added (see :meth:`Reconstruction.extend`).
+    `base` is left as it was."""
+    check_sequence(sequence, 2, "extend(): sequence", needs_depth=True)
+    if base.frames is None:
+        raise InputError("extend(): this reconstruction does not keep the frames it was built from (saved with "
+                         "frames=False, or by an earlier version): there is nothing to replay; reconstruct anew")
+    config = extension_config(base, config)
+    combined = concatenate([base.frames, sequence])  # InputError when the size or intrinsic differs
+    n_old = len(base.poses)
+    new_train, new_hold = split_frames(len(sequence), config.holdout_every, config.train_views, min_train=1)
+    train_idx = np.concatenate([base.train_indices, n_old + new_train])
+    hold_idx = np.concatenate([base.holdout_indices, n_old + new_hold])
+    stages = tqdm(total=4, desc="extend", disable=not config.progress, dynamic_ncols=True)
+    timings, t0 = {}, time.perf_counter()
+    stages.set_postfix_str("tracking")
+    if poses is not None:
+        new_poses, new_covariances = camera_poses(poses, len(sequence), "poses", covariances)
+        poses, covariances = np.concatenate([base.poses, new_poses]), np.concatenate([base.covariances, new_covariances])
+        tracking = {"tracked": False}
+    else:
+        trajectory = config.tracking.track_onto(combined, base.poses, base.covariances, config.progress)
+        poses, covariances, tracking = trajectory.poses, trajectory.covariances, {"tracked": True}
+        if sequence.gt_poses is not None and sequence.gt_valid.any():
+            tracking["ate_rmse_m"] = absolute_trajectory_error(poses[n_old:], sequence.gt_poses)["rmse"]
+    timings["tracking_s"] = round(time.perf_counter() - t0, 2)
+    stages.update(1)
+    return fit(combined, config, poses, covariances, train_idx, hold_idx, tracking, timings, stages, t0, base=base)
+
+
+def extension_config(base: Reconstruction, config: ReconstructionConfig | None) -> ReconstructionConfig:
+    """The config of an extension of `base`: `config` checked to keep base's field (ConfigError), or
+    for None base's own with EXTENSION_BUDGET of its training budget."""
+    old = base.config
+    if config is None:
+        budget = None if old.time_budget_s is None else EXTENSION_BUDGET * old.time_budget_s
+        config = old.replace(max_steps=max(1, round(EXTENSION_BUDGET * old.max_steps)), time_budget_s=budget)
+    config = checked_config(config)
+    if (config.field, config.geometry, config.field_config) != (old.field, old.geometry, old.field_config):
+        raise ConfigError(f"extend(): the config changes the map's field (field={old.field!r}, geometry="
+                          f"{old.geometry!r}, {old.field}: {old.field_config}) to field={config.field!r}, geometry="
+                          f"{config.geometry!r}, {config.field}: {config.field_config}; a map keeps its field "
+                          "(reconstruct anew to change it)")
+    return config
+
+
+def continued_field(base: Reconstruction, box: np.ndarray, config: ReconstructionConfig):
+    """(scene box, field) to train base's field further on frames whose own scene box is `box` (2, 3):
+    base's box and a copy of its field when the box pokes out of it by at most the box's margin
+    (scene.BOX_MARGIN), else the union of both with the copy grown by a new block
+    (:func:`~open3d_pnerf.fields.grow`: the old region renders as before)."""
+    field = copy.deepcopy(base.field).to(torch.device(config.device))
+    old = base.aabb
+    if (box[0] >= old[0] - BOX_MARGIN).all() and (box[1] <= old[1] + BOX_MARGIN).all():
+        return old.copy(), field
+    if not isinstance(field, EncodedField):
+        raise InputError(f"extend(): the new frames reach outside the map's box {old.tolist()} and a "
+                         f"{config.field!r} field cannot grow (a grid field can: 'hashgrid' or 'grid')")
+    union = np.stack([np.minimum(old[0], box[0]), np.maximum(old[1], box[1])]).astype(np.float32)
+    return union, grow(field, union, config.build_field(union).encoding)
 
 
 def checked_config(config: ReconstructionConfig | None) -> ReconstructionConfig:
@@ -260,10 +355,30 @@ def reconstruct_folder(sequence: RGBDSequence, config: ReconstructionConfig, out
         recon = run(sequence, config, poses, covariances, out / "checkpoints", resume, dist)
     if not dist.is_main:
         return None
+    return write_outputs(recon, sequence, out, config.progress)
+
+
+def extend_folder(base_dir, sequence: RGBDSequence, out, overrides: dict | None = None, poses=None,
+                  inputs: dict | None = None) -> dict:
+    """:meth:`Reconstruction.extend` of the saved reconstruction in `base_dir` (unchanged) into the
+    folder `out`, with run_config.json, the saved reconstruction, its comparison with TSDF fusion
+    on the held-out frames of all segments and report.json / report.md. overrides: config fields
+    changed from the extension's default config (:func:`extension_config`). Returns the report."""
+    base = Reconstruction.load(base_dir, (overrides or {}).get("device"))
+    config = extension_config(base, None).replace(**overrides) if overrides else None
+    recon = extend(base, sequence, config, poses)
+    # the frames of all segments are saved with it: evaluate reads those (no "data" recorded)
+    write_run_config(Path(out), recon.config, {"extends": str(Path(base_dir).resolve()), "added": inputs or {}})
+    return write_outputs(recon, recon.frames, Path(out), recon.config.progress)
+
+
+def write_outputs(recon: Reconstruction, sequence: RGBDSequence, out: Path, progress: bool) -> dict:
+    """Save `recon` (built from `sequence`) into `out` with its comparison with TSDF fusion on the
+    held-out frames (figures, tsdf_mesh.ply) and report.json / report.md; returns the report."""
     recon.save(out)
     scores, figures = {}, []
     if len(recon.holdout_indices):  # TSDF of the same training frames and poses; writes tsdf_mesh.ply, figures
-        comparison = compare(recon, sequence, progress=config.progress)
+        comparison = compare(recon, sequence, progress=progress)
         comparison.save(out)
         scores, figures = comparison.table, [f"compare_frame_{i:04d}.png" for i in comparison.frames]
     report = {"sequence": repr(sequence), "frames": len(sequence), "ate_rmse_m": recon.stats["tracking"].get("ate_rmse_m"),

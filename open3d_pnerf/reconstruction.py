@@ -44,7 +44,9 @@ class Reconstruction:
     calibrated 1-sigma error (:meth:`calibrate_depth_sigma`). observed: the surfaces the
     training frames' depth saw (None without depth): away from them the law widens the rendered
     depth sigma (:meth:`render`). geometry: the exported mesh and point cloud with their
-    per-vertex and per-point depth sigma (``recon.mesh``, ...).
+    per-vertex and per-point depth sigma (``recon.mesh``, ...). frames: the RGB-D frames it was
+    built from (an :class:`~open3d_pnerf.RGBDSequence` of all N, read lazily; saved with it), which
+    :meth:`extend` replays; None when not kept.
     """
 
     model: PNeRFModel
@@ -58,6 +60,7 @@ class Reconstruction:
     color_gains: np.ndarray | None = None
     depth_error: DepthErrorLaw = DepthErrorLaw()
     observed: ObservedSurface | None = None
+    frames: RGBDSequence | None = None
     geometry: Geometry = dataclasses.field(default_factory=Geometry)
     stats: dict = dataclasses.field(default_factory=dict)
 
@@ -276,12 +279,39 @@ class Reconstruction:
         return write_nerfstudio(sequence, path, self.poses, self.train_indices,
                                 self.holdout_indices if len(self.holdout_indices) else None, progress)
 
-    def save(self, directory) -> Path:
+    def save(self, directory, frames: bool = True) -> Path:
         """Write the reconstruction's folder (:mod:`open3d_pnerf.storage`): weights, config, poses,
-        covariances, trajectories, mesh.ply, point_cloud.ply; atomically."""
-        return storage.write_folder(self, directory)
+        covariances, trajectories, mesh.ply, point_cloud.ply and, unless frames=False (the folder
+        then cannot be extended), the frames it was built from; atomically."""
+        return storage.write_folder(self, directory, frames)
 
     @classmethod
     def load(cls, directory, device: str | None = None) -> "Reconstruction":
         """Load a folder written by :meth:`save`, every file checked (a crafted file cannot run code)."""
         return cls(**storage.read_folder(directory, device))
+
+    # -- a map that grows ----------------------------------------------------------------------
+    def extend(self, sequence: RGBDSequence, config: ReconstructionConfig | None = None, poses=None,
+               covariances=None) -> "Reconstruction":
+        """A new reconstruction with the frames of `sequence` added to this one's (left unchanged).
+
+        Without `poses`, the new frames are tracked onto the map (:func:`~open3d_pnerf.tracking.
+        track_onto`: the first placed from this map's frames, never from identity; loop closures
+        across old and new keyframes; covariances for all), else `poses` (N, 4, 4) camera-to-world
+        in this map's world frame (or a trajectory, as :func:`~open3d_pnerf.reconstruct` takes
+        them) are used. Every 'config.holdout_every'-th new frame is held out. The depth targets of
+        all training frames are built again (the old frames fuse with the new), and training
+        continues from this map's weights on all of them (the old frames replayed, so nothing
+        mapped is forgotten). Where the new frames reach outside the scene box, the field grows a
+        new block over the larger box (the old region renders as before). Then calibration and
+        export, as :func:`~open3d_pnerf.reconstruct` does.
+
+        sequence: RGB-D frames of the same size and intrinsic as this map's (InputError
+        otherwise). config: default, this map's config with
+        :data:`~open3d_pnerf.pipeline.EXTENSION_BUDGET` of its training budget; a config that
+        changes the field type or its settings raises ConfigError. A segment that does not
+        register to the map raises TrackingError. Needs :attr:`frames` (saved folders keep them).
+        """
+        from .pipeline import extend
+
+        return extend(self, sequence, config, poses, covariances)

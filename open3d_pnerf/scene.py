@@ -15,6 +15,7 @@ from .camera import backproject, camera_rays
 from .data.sequence import RGBDSequence
 from .targets import DepthTargets
 
+BOX_MARGIN = 0.05  # m: what scene_box adds on every side beyond its relative padding
 NEAR_MARGIN = 0.9  # depth_range's near plane: 0.9 x the nearest SfM bound, as DS-NeRF (no NDC) and NeRF's LLFF loader
 
 
@@ -22,7 +23,7 @@ def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: floa
     """(2, 3) axis-aligned box (m) holding the camera centres and the targets' surface points.
 
     Uses the 0.5-99.5 percentiles of back-projected target depths (every `stride`-th pixel)
-    to ignore stray far points, then pads by `pad` times the size plus 5 cm.
+    to ignore stray far points, then pads by `pad` times the size plus BOX_MARGIN.
     """
     pts = [poses[:, :3, 3]]
     for i in range(len(targets)):
@@ -32,7 +33,7 @@ def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: floa
     pts = np.concatenate(pts)
     lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
     lo, hi = np.minimum(lo, poses[:, :3, 3].min(0)), np.maximum(hi, poses[:, :3, 3].max(0))
-    margin = pad * (hi - lo) + 0.05
+    margin = pad * (hi - lo) + BOX_MARGIN
     return np.stack([lo - margin, hi + margin]).astype(np.float32)
 
 

@@ -4,8 +4,8 @@ The folder holds ``reconstruction.json`` (format version, config, scene box, dep
 intrinsic, frame split, timestamps, depth-error law, statistics), ``model.pt`` (the field's
 weights only), ``poses.npy``, ``covariances.npy``, ``color_gains.npy``, ``observed.npy`` (the centres of the
 voxels the training frames' depth saw, when there was depth), ``mesh.ply`` (with
-per-vertex ``depth_sigma``), ``point_cloud.ply`` (with per-point ``depth_sigma``), and the
-trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's ``trajectory.json`` (a
+per-vertex ``depth_sigma``), ``point_cloud.ply`` (with per-point ``depth_sigma``), ``frames/`` (the frames it was built
+from, as an Open3D folder: what extending the map replays), and the trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's ``trajectory.json`` (a
 PinholeCameraTrajectory with the training intrinsic). Reading never unpickles code
 (``torch.load(weights_only=True)``, ``np.load(allow_pickle=False)``).
 """
@@ -13,6 +13,7 @@ PinholeCameraTrajectory with the training intrinsic). Reading never unpickles co
 from __future__ import annotations
 
 import json
+import shutil
 import warnings
 from pathlib import Path
 
@@ -24,23 +25,30 @@ from .camera import check_intrinsic, intrinsic_matrix, pinhole
 from .config import ReconstructionConfig
 from .data.trajectories import write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
 from .error_law import UNSEEN, UNSEEN_RAMP, DepthErrorLaw
-from .errors import CheckpointError, ConfigError
+from .data.open3d_folder import read_open3d_folder, write_sequence
+from .errors import CheckpointError, ConfigError, DatasetError, InputError
+from .fields import block_boxes
 from .export import Geometry, read_mesh_ply, read_point_cloud_ply, write_mesh_ply, write_point_cloud_ply
 from .model import build_model
 from .observed import ObservedSurface
 from .training import safe_torch_load
 
 FORMAT_VERSION = 2
+FRAMES = "frames"
+FRAMES_DEPTH_SCALE = 5000.0  # raw units per metre of the saved depth PNGs: 0.2 mm steps up to 13 m
 META_KEYS = ("format_version", "config", "aabb", "depth_range", "intrinsic", "train_indices", "holdout_indices",
              "timestamps", "depth_error")
 
 
-def write_folder(recon, directory) -> Path:
+def write_folder(recon, directory, frames: bool = True) -> Path:
     """Write `recon` (a Reconstruction) into `directory`: every file goes to a temporary first and
     all are renamed at the end, so a failure or Ctrl-C while saving leaves the folder's previous
-    files intact; a mesh or point cloud with nothing in it is not written (and a stale one removed)."""
+    files intact; a mesh or point cloud with nothing in it is not written (and a stale one removed).
+    frames: write recon.frames (when it has them) as ``frames/``; False leaves them out (and a
+    stale ``frames/`` removed): the folder then cannot be extended."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
+    staged = _stage_frames(recon.frames, d) if frames and recon.frames is not None else None
     intr, law, model = recon.intrinsic, recon.depth_error, recon.model
     meta = {
         "format_version": FORMAT_VERSION,
@@ -54,6 +62,7 @@ def write_folder(recon, directory) -> Path:
         "depth_error": law.to_dict(),
         "stats": recon.stats,
         "observed_voxel_size": None if recon.observed is None else recon.observed.voxel_size,
+        "blocks": block_boxes(model.field),
     }
     weights = {k: v.cpu() for k, v in model.field.state_dict().items()}
     writes = {
@@ -79,12 +88,32 @@ def write_folder(recon, directory) -> Path:
         else:
             empty.append(name)
     atomic_write_all(writes)
+    _swap_in(staged, d / FRAMES)
     if recon.observed is None:
         (d / "observed.npy").unlink(missing_ok=True)
     for name in empty:
         (d / name).unlink(missing_ok=True)  # never leave a stale file from an earlier run
         warnings.warn(f"{name} not written: the model has no confident surface yet (train longer)")
     return d
+
+
+def _stage_frames(frames, d: Path) -> Path:
+    """Write the frames to a new folder beside ``d/frames`` (to be swapped in by :func:`_swap_in`)."""
+    staged = d / f"{FRAMES}.partial"
+    shutil.rmtree(staged, ignore_errors=True)
+    write_sequence(frames, staged, FRAMES_DEPTH_SCALE)
+    return staged
+
+
+def _swap_in(staged: Path | None, target: Path) -> None:
+    """Put the staged frames folder in place of `target` (removed when nothing is staged)."""
+    old = target.with_name(f"{FRAMES}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    if target.exists():
+        target.rename(old)
+    if staged is not None:
+        staged.rename(target)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def read_folder(directory, device: str | None = None) -> dict:
@@ -113,12 +142,21 @@ def read_folder(directory, device: str | None = None) -> dict:
             raise ValueError(f"frame indices outside [0, {n})")
         depth_range = _depth_range(meta["depth_range"])
         law = _error_law(meta["depth_error"])
+        blocks = meta.get("blocks")
+        if blocks is not None:
+            blocks = np.asarray(blocks, np.float32).reshape(-1, 2, 3)
+            if not (np.isfinite(blocks).all() and (blocks[:, 0] < blocks[:, 1]).all()
+                    and np.allclose(blocks[-1], aabb)):
+                raise ValueError("blocks are not finite [min, max] boxes ending with aabb")
         voxel = meta.get("observed_voxel_size")
         if voxel is not None and not (isinstance(voxel, (int, float)) and np.isfinite(voxel) and voxel > 0):
             raise ValueError(f"observed_voxel_size {voxel!r} is not a size > 0 (m)")
     except (KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f"{meta_path}: malformed metadata ({exc})") from None
-    model = build_model(config, aabb, depth_range=depth_range)
+    try:
+        model = build_model(config, aabb, depth_range=depth_range, blocks=blocks)
+    except ConfigError as exc:
+        raise CheckpointError(f"{meta_path}: {exc}") from None
     try:
         model.field.load_state_dict(safe_torch_load(d / "model.pt"))
     except (RuntimeError, KeyError, TypeError) as exc:
@@ -131,10 +169,26 @@ def read_folder(directory, device: str | None = None) -> dict:
     observed = None
     if voxel is not None:
         observed = ObservedSurface(float(voxel), _load_array(d / "observed.npy", (None, 3)))
-    return dict(model=model, config=config, poses=_load_array(d / "poses.npy", (n, 4, 4)),
+    return dict(frames=_read_frames(d / FRAMES, n, intrinsic.width, intrinsic.height, config.image_scale),
+                model=model, config=config, poses=_load_array(d / "poses.npy", (n, 4, 4)),
                 covariances=_load_array(d / "covariances.npy", (n, 6, 6)), intrinsic=intrinsic, train_indices=train,
                 holdout_indices=holdout, timestamps=timestamps, color_gains=gains, depth_error=law, observed=observed,
                 geometry=Geometry(mesh, mesh_sigma, cloud, point_sigma), stats=meta.get("stats") or {})
+
+
+def _read_frames(path: Path, n: int, width: int, height: int, image_scale: float):
+    """The saved frames (an RGBDSequence of n frames read lazily), or None without ``frames/``."""
+    if not path.is_dir():
+        return None
+    try:
+        frames = read_open3d_folder(path)
+    except (DatasetError, InputError) as exc:
+        raise CheckpointError(f"{path}: unreadable saved frames ({exc})") from None
+    trained = frames.at_scale(image_scale).image_size
+    if len(frames) != n or abs(trained[0] - height) > 1 or abs(trained[1] - width) > 1:
+        raise CheckpointError(f"{path}: {len(frames)} frames of {frames.image_size[1]}x{frames.image_size[0]}, "
+                              f"expected {n} that train at {width}x{height}")
+    return frames
 
 
 def _read_meta(path: Path) -> dict:

@@ -14,7 +14,7 @@ import pytest
 
 from open3d_pnerf import cli
 
-COMMANDS = ("demo", "reconstruct", "track", "tsdf", "render", "evaluate")
+COMMANDS = ("demo", "reconstruct", "extend", "track", "tsdf", "render", "evaluate")
 
 
 def test_help_lists_every_command():
@@ -127,15 +127,19 @@ def test_evaluate_scores_the_held_out_frames_like_reconstruct(run_dir, tmp_path,
 
 
 @pytest.mark.slow
-def test_evaluate_a_folder_saved_from_python_needs_data(run_dir, tmp_path, capsys):
+def test_evaluate_a_folder_saved_from_python_scores_its_frames_else_needs_data(run_dir, tmp_path, capsys):
     folder = tmp_path / "saved"
     shutil.copytree(run_dir, folder, ignore=shutil.ignore_patterns("checkpoints", "run_config.json"))
-    assert cli.main(["--quiet", "evaluate", str(folder)]) == cli.EXIT_ERROR
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--data" in err[0]
+    assert cli.main(["--quiet", "evaluate", str(folder), "--no-tsdf"]) == 0  # the frames saved with it
+    from_frames = json.loads((folder / "evaluation.json").read_text())["scores"]["model"]
     assert cli.main(["--quiet", "evaluate", str(folder), "--data", "sample", "--no-tsdf"]) == 0
     report = json.loads((folder / "evaluation.json").read_text())
     assert set(report["scores"]) == {"model"} and report["scores"]["model"]["psnr"] > 5
+    assert from_frames["psnr"] == pytest.approx(report["scores"]["model"]["psnr"], abs=0.05)  # PNG round trip
+    shutil.rmtree(folder / "frames")
+    assert cli.main(["--quiet", "evaluate", str(folder)]) == cli.EXIT_ERROR
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--data" in err[0]
 
 
 @pytest.mark.slow

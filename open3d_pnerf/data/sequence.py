@@ -305,6 +305,40 @@ class RGBDSequence:
         return seq
 
 
+def concatenate(sequences: Sequence[RGBDSequence], name: str | None = None) -> RGBDSequence:
+    """One sequence of the frames of `sequences` in order, each frame as its sequence gives it (at
+    its image scale, colour on the depth grid), read lazily. The sequences must have depth images
+    and the same image size and depth intrinsic (InputError naming the first that differs);
+    ground-truth poses are kept where a sequence has them (NaN rows elsewhere)."""
+    if not sequences:
+        raise InputError("concatenate(): no sequences")
+    first = check_sequence(sequences[0], what="concatenate(): sequences[0]", needs_depth=True)
+    readers, gt = [], []
+    for k, seq in enumerate(sequences):
+        check_sequence(seq, what=f"concatenate(): sequences[{k}]", needs_depth=True)
+        if seq.image_size != first.image_size or not np.allclose(seq.K, first.K, rtol=1e-6, atol=1e-6):
+            raise InputError(f"{seq.name}: frames of {seq.image_size[1]}x{seq.image_size[0]} with intrinsic "
+                             f"{np.round(seq.K[[0, 1, 0, 1], [0, 1, 2, 2]], 3).tolist()} (fx, fy, cx, cy) do not "
+                             f"match {first.name}'s {first.image_size[1]}x{first.image_size[0]} with "
+                             f"{np.round(first.K[[0, 1, 0, 1], [0, 1, 2, 2]], 3).tolist()}")
+        readers += [_registered_reader(seq, i) for i in range(len(seq))]
+        gt.append(seq.gt_poses if seq.gt_poses is not None else np.full((len(seq), 4, 4), np.nan))
+    gt_poses = np.concatenate(gt) if any(seq.gt_poses is not None for seq in sequences) else None
+    return RGBDSequence(readers, first.intrinsic, np.concatenate([seq.timestamps for seq in sequences]), gt_poses,
+                        name=name or "+".join(dict.fromkeys(seq.name for seq in sequences)))
+
+
+def _registered_reader(sequence: RGBDSequence, index: int) -> FrameReader:
+    """A reader of frame `index` of `sequence` as it gives it, its colour on the depth grid."""
+
+    def read():
+        frame = sequence[index]
+        return sequence.color_on_depth_grid(frame.color), frame.depth
+
+    read.source = sequence._describe(index)
+    return read
+
+
 def evenly_spaced(n: int, k: int) -> np.ndarray:
     """Indices of min(k, n) items evenly spread over range(n), first and last included."""
     return np.unique(np.round(np.linspace(0, n - 1, min(k, n))).astype(int)) if n and k else np.zeros(0, int)

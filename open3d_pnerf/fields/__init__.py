@@ -2,7 +2,7 @@
 a grid field's geometry may be a signed distance (sdf).
 Which one a reconstruction uses, and with what settings, is chosen by its config (FIELD_CONFIGS)."""
 
-from .encodings import DenseGridEncoding, FrequencyEncoding, HashGridEncoding
+from .encodings import BlockEncoding, DenseGridEncoding, FrequencyEncoding, HashGridEncoding
 from .fields import (
     FIELD_CONFIGS,
     EncodedField,
@@ -13,10 +13,13 @@ from .fields import (
     HashGridField,
     VanillaConfig,
     VanillaNeRFField,
+    block_boxes,
+    grow,
 )
 from .sdf import SDFConfig
 
 __all__ = [
-    "DenseGridEncoding", "EncodedField", "FIELD_CONFIGS", "Field", "FrequencyEncoding", "GridConfig", "GridField",
+    "BlockEncoding", "DenseGridEncoding", "EncodedField", "FIELD_CONFIGS", "Field", "FrequencyEncoding", "GridConfig", "GridField",
     "HashGridConfig", "HashGridEncoding", "HashGridField", "SDFConfig", "VanillaConfig", "VanillaNeRFField",
+    "block_boxes", "grow",
 ]

@@ -190,3 +190,43 @@ class FrequencyEncoding(nn.Module):
         scaled = (x[..., None] * self.freqs).flatten(-2)
         parts = [torch.sin(scaled), torch.cos(scaled)]
         return torch.cat(([x] if self.include_input else []) + parts, -1)
+
+
+class BlockEncoding(nn.Module):
+    """The encoding of a field whose box grew: one encoding (block) per box, the first box the
+    field's original one, the last the field's current box (holding all the others).
+
+    Input u: (B, 3) points in the field's box coordinates ([0, 1] over the last box). A point is
+    encoded by the first block whose box holds it, in that block's own box coordinates: points of
+    the original box encode exactly as before the growth. boxes: (K, 2, 3) world boxes (m) of the
+    K blocks (same encoding type and output size).
+    """
+
+    def __init__(self, blocks: list[nn.Module], boxes):
+        super().__init__()
+        if len(blocks) != len(boxes) or len({b.out_dim for b in blocks}) != 1:
+            raise ValueError("BlockEncoding: one box per block, and blocks of one output size")
+        self.blocks = nn.ModuleList(blocks)
+        boxes = torch.as_tensor(boxes, dtype=torch.float32).reshape(len(blocks), 2, 3)
+        size = boxes[:, 1] - boxes[:, 0]
+        self.register_buffer("boxes", boxes, persistent=False)
+        self.register_buffer("scale", size[-1] / size, persistent=False)  # field coordinates -> block k's
+        self.register_buffer("shift", (boxes[-1, 0] - boxes[:, 0]) / size, persistent=False)
+
+    @property
+    def out_dim(self) -> int:
+        return self.blocks[0].out_dim
+
+    def forward(self, u: torch.Tensor, known: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, out_dim) encoding of points u (B, 3) in the last box's coordinates; `known` is not
+        reused (each block recomputes its rows)."""
+        out = u.new_zeros(u.shape[0], self.out_dim)
+        left = torch.ones(u.shape[0], dtype=torch.bool, device=u.device)
+        for k, block in enumerate(self.blocks):
+            v = u * self.scale[k] + self.shift[k]
+            mine = left if k == len(self.blocks) - 1 else left & ((v >= 0) & (v <= 1)).all(-1)
+            rows = mine.nonzero().squeeze(1)
+            if rows.numel():
+                out = out.index_copy(0, rows, block(v[rows]))
+            left = left & ~mine
+        return out

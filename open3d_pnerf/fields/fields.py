@@ -16,7 +16,7 @@ from torch.profiler import record_function
 from ..errors import ConfigError
 from ..settings import Rule, Settings, count, one_of, setting
 from . import native
-from .encodings import BACKENDS, DenseGridEncoding, FrequencyEncoding, HashGridEncoding
+from .encodings import BACKENDS, BlockEncoding, DenseGridEncoding, FrequencyEncoding, HashGridEncoding
 from .sdf import SDFConfig, sdf_density
 
 
@@ -146,6 +146,26 @@ class EncodedField(Field):
     def color(self, features: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         with record_function("pnerf.mlp"), self.mlp_precision(features):
             return torch.sigmoid(self.color_net(torch.cat([features, self.dir_encoding(d)], -1)).float())
+
+
+def grow(field: EncodedField, box, block: nn.Module) -> EncodedField:
+    """`field` over the larger box `box` (2, 3) m holding its own: its heads and its encoding kept for
+    the points of its box (they render exactly as before), the fresh encoding `block` (of the same
+    type) for the rest (:class:`BlockEncoding`). The field is changed in place and returned."""
+    box = torch.as_tensor(box, dtype=torch.float32, device=field.aabb.device).reshape(2, 3)
+    if (box[0] > field.aabb[0]).any() or (box[1] < field.aabb[1]).any():
+        raise ValueError(f"grow(): the box {box.tolist()} does not hold the field's {field.aabb.tolist()}")
+    old = field.encoding
+    blocks, boxes = (list(old.blocks), list(old.boxes)) if isinstance(old, BlockEncoding) else ([old], [field.aabb])
+    field.encoding = BlockEncoding(blocks + [block.to(box.device)], torch.stack(boxes + [box]))
+    field.aabb = box
+    return field
+
+
+def block_boxes(field: nn.Module) -> list | None:
+    """The (K, 2, 3) world boxes of a grown field's blocks as nested lists (None for a field that never grew)."""
+    encoding = getattr(field, "encoding", None)
+    return encoding.boxes.tolist() if isinstance(encoding, BlockEncoding) else None
 
 
 class GridField(EncodedField):

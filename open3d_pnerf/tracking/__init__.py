@@ -7,7 +7,7 @@
 from .covariance import edge_jacobians, pose_graph_covariances, pose_graph_hessian
 from .metrics import absolute_trajectory_error, consistency_of_errors, covariance_consistency, pose_errors, rigid_alignment
 from .odometry import FrameRegistration, OdometryOptions, PairResult
-from .tracker import TrackingConfig, track
+from .tracker import TrackingConfig, track, track_onto
 from .trajectory import Edge, Trajectory
 
 __all__ = [
@@ -26,4 +26,5 @@ __all__ = [
     "pose_errors",
     "rigid_alignment",
     "track",
+    "track_onto",
 ]

@@ -9,14 +9,18 @@ import numpy as np
 import open3d as o3d
 from tqdm.auto import tqdm
 
-from ..camera import rotation_vector
-from ..data.sequence import RGBDSequence, check_sequence
+from ..camera import adjoint, rotation_vector
+from ..data.sequence import RGBDSequence, check_sequence, evenly_spaced
 from ..errors import InputError, TrackingError
 from ..settings import FLAG, Settings, setting
 from .covariance import pose_graph_covariances
 from .odometry import FrameRegistration, OdometryOptions, PairResult, motion
 from .posegraph import add_edge, loop_closure_candidates, optimize
 from .trajectory import Edge, Trajectory
+
+PINNED_VARIANCE = 1e-10
+"""Variance (rad^2, m^2) of the edges that pin known poses to frame 0 when tracking onto a map
+(:func:`track_onto`): the optimisation leaves them where they are."""
 
 LOOP_INFLATION = 9.0
 """A loop closure's covariance is this many times its registration's: its two images already
@@ -34,6 +38,11 @@ class TrackingConfig(Settings):
     def track(self, sequence: RGBDSequence, progress: bool = True) -> Trajectory:
         """:func:`track` with these settings."""
         return track(sequence, loop_closure=self.loop_closure, progress=progress)
+
+    def track_onto(self, sequence: RGBDSequence, known_poses: np.ndarray, known_covariances: np.ndarray,
+                   progress: bool = True) -> Trajectory:
+        """:func:`track_onto` with these settings."""
+        return track_onto(sequence, known_poses, known_covariances, loop_closure=self.loop_closure, progress=progress)
 
 
 def track(
@@ -107,20 +116,92 @@ def track(
             "(consecutive frames must overlap)"
         )
     if loop_closure:
-        keyframes = list(range(0, n, keyframe_spacing(n, keyframe_every, max_keyframes)))
-        linked = {(e.source_node_id, e.target_node_id) for e in run.graph.edges}
-        pairs = loop_closure_candidates(
-            np.stack(run.poses), keyframes, linked,
-            loop_max_distance_m, loop_max_angle_deg, loops_per_keyframe,
-        )
-        loop_odometry = loop_odometry or _default_loop_odometry(sequence, odometry)
-        for s, t in tqdm(pairs, desc="loop closures", disable=not progress, leave=False):
-            run.close_loop(s, t, loop_odometry)
-        if any(e.kind == "loop" and e.success for e in run.edges):
-            optimize(run.graph, max_correspondence_distance=odometry.inlier_distance_m)
-            run.mark_pruned_loops()
-
+        _close_loops(run, sequence, keyframes=list(range(0, n, keyframe_spacing(n, keyframe_every, max_keyframes))),
+                     odometry=odometry, loop_odometry=loop_odometry, max_distance_m=loop_max_distance_m,
+                     max_angle_deg=loop_max_angle_deg, per_keyframe=loops_per_keyframe, progress=progress)
     _warn_failures(run, sequence.name)
+    return _trajectory(run, sequence)
+
+
+def track_onto(
+    sequence: RGBDSequence,
+    known_poses: np.ndarray,
+    known_covariances: np.ndarray,
+    *,
+    anchors: int = 8,
+    keyframe_every: int = 5,
+    max_keyframes: int | None = 200,
+    loop_closure: bool = True,
+    max_depth: float = 3.0,
+    device=None,
+    progress: bool = True,
+    odometry: OdometryOptions = OdometryOptions(),
+    loop_odometry: OdometryOptions | None = None,
+    loop_max_distance_m: float = 1.0,
+    loop_max_angle_deg: float = 45.0,
+    loops_per_keyframe: int = 10,
+) -> Trajectory:
+    """Track the frames of `sequence` after its first K onto a map: the first K frames' poses
+    (K, 4, 4) and covariances (K, 6, 6) are known and stay as they are.
+
+    Frame K is placed on the map by the first of these that passes :func:`track`'s checks: the
+    chain's own guesses from frame K-1 (constant velocity, zero motion, global registration:
+    a capture that continues), then zero motion and the global registration against `anchors`
+    map frames evenly spaced over the others, best residual first; when none passes, the frames
+    cannot join the map and TrackingError says so (they are never chained from a guess). The
+    frames after K are tracked as :func:`track` tracks them; with ``loop_closure``, keyframes of
+    the new frames are registered to every keyframe (old or new) near them, and the pose graph,
+    with the known frames pinned, is optimised. The new frames' covariances are the graph's
+    marginals relative to the map plus the map frame they were placed from (its covariance
+    carried to them). Returns the Trajectory of all N frames (the known ones as given).
+    """
+    n = len(check_sequence(sequence, 2, "track_onto(): sequence", needs_depth=True))
+    known = len(known_poses)
+    if not 1 <= known < n:
+        raise InputError(f"track_onto(): {known} known poses for a sequence of {n} frames; the known frames "
+                         "come first and at least one frame must be new")
+    known_poses = np.asarray(known_poses, np.float64)
+    known_covariances = np.asarray(known_covariances, np.float64)
+    if known_poses.shape != (known, 4, 4) or known_covariances.shape != (known, 6, 6):
+        raise InputError(f"track_onto(): known poses {known_poses.shape} and covariances {known_covariances.shape}, "
+                         f"expected ({known}, 4, 4) and ({known}, 6, 6)")
+    run = _Run(FrameRegistration(sequence, max_depth, device), odometry, known_poses)
+    anchor = run.place_on_map(known, [int(j) for j in evenly_spaced(known - 1, anchors)], sequence.name)
+    for i in tqdm(range(known + 1, n), desc="odometry", disable=not progress, leave=False):
+        run.track_frame(i)
+    if loop_closure:
+        keyframes = list(range(0, n, keyframe_spacing(n, keyframe_every, max_keyframes)))
+        _close_loops(run, sequence, keyframes, odometry, loop_odometry, loop_max_distance_m, loop_max_angle_deg,
+                     loops_per_keyframe, progress, new_from=known)
+    _warn_failures(run, sequence.name)
+    trajectory = _trajectory(run, sequence)
+    covariances = trajectory.covariances
+    covariances[:known] = known_covariances
+    for i in range(known, n):  # the map frame's own uncertainty, carried along the relative pose
+        ad = adjoint(np.linalg.inv(known_poses[anchor]) @ trajectory.poses[i])
+        ad_inv = np.linalg.inv(ad)
+        covariances[i] += ad_inv @ known_covariances[anchor] @ ad_inv.T
+    return trajectory
+
+
+def _close_loops(run: "_Run", sequence: RGBDSequence, keyframes: list[int], odometry: OdometryOptions,
+                 loop_odometry: OdometryOptions | None, max_distance_m: float, max_angle_deg: float,
+                 per_keyframe: int, progress: bool, new_from: int = 0) -> None:
+    """Register the keyframe pairs near each other that have a frame from `new_from` on, add the
+    passing ones as uncertain edges, and optimise the graph when any was added."""
+    linked = {(e.source_node_id, e.target_node_id) for e in run.graph.edges}
+    pairs = [(s, t) for s, t in loop_closure_candidates(np.stack(run.poses), keyframes, linked, max_distance_m,
+                                                         max_angle_deg, per_keyframe) if t >= new_from]
+    loop_odometry = loop_odometry or _default_loop_odometry(sequence, odometry)
+    for s, t in tqdm(pairs, desc="loop closures", disable=not progress, leave=False):
+        run.close_loop(s, t, loop_odometry)
+    if any(e.kind == "loop" and e.success for e in run.edges):
+        optimize(run.graph, max_correspondence_distance=odometry.inlier_distance_m)
+        run.mark_pruned_loops()
+
+
+def _trajectory(run: "_Run", sequence: RGBDSequence) -> Trajectory:
+    """The Trajectory of a finished run: the graph's poses, their covariances, the registration log."""
     poses = np.stack([np.asarray(node.pose, dtype=np.float64) for node in run.graph.nodes])
     covariances = pose_graph_covariances(run.graph, information=run.edge_information())
     return Trajectory(
@@ -154,19 +235,24 @@ def _default_loop_odometry(sequence: RGBDSequence, odometry: OdometryOptions) ->
 class _Run:
     """Mutable state of one tracking run: chain poses, pose graph, registration log and statistics."""
 
-    def __init__(self, registrar: FrameRegistration, options: OdometryOptions):
+    def __init__(self, registrar: FrameRegistration, options: OdometryOptions, known_poses: np.ndarray | None = None):
         self.registrar = registrar
         self.options = options
-        self.poses = [np.eye(4)]
+        self.poses = [np.eye(4)] if known_poses is None else list(known_poses)
         self.graph = o3d.pipelines.registration.PoseGraph()
-        self.graph.nodes.append(o3d.pipelines.registration.PoseGraphNode(np.eye(4)))
+        for pose in self.poses:
+            self.graph.nodes.append(o3d.pipelines.registration.PoseGraphNode(pose))
         self.edges: list[Edge] = []
         self.failed_frames: list[int] = []
         self.flagged_frames: list[int] = []
         self.recovered_frames: list[int] = []
-        self.registered = [0]  # frames with a verified incoming registration (and frame 0)
+        self.registered = list(range(len(self.poses)))  # frames with a verified incoming registration (or known)
         self.residuals: list[float] = []  # point-to-plane residual RMS of the accepted odometry registrations
         self.covariances: dict[tuple[int, int], np.ndarray] = {}  # (source, target) -> 6x6, per graph edge
+        for j in range(1, len(self.poses)):  # known poses: pinned to frame 0 (the optimisation's fixed node)
+            add_edge(self.graph, j, 0, np.linalg.inv(self.poses[0]) @ self.poses[j], np.eye(6) / PINNED_VARIANCE,
+                     uncertain=False)
+            self.covariances[j, 0] = PINNED_VARIANCE * np.eye(6)
         limits = np.array([np.radians(options.max_rotation_deg)] * 3 + [options.max_translation_m] * 3)
         self.guess_covariance = np.diag(limits**2)  # a guessed pose: anywhere within the plausible motion
 
@@ -221,6 +307,36 @@ class _Run:
     def track_frame(self, i: int) -> None:
         """Add frame i: the best verified registration among the candidates (the first that
         passes and is not suspicious, or all of them when the camera moves fast), else a guess."""
+        passed = self.try_candidates(i)
+        if not self.add_registered(i, passed):  # nothing placed it: continue the motion, with a covariance to match
+            self.failed_frames.append(i)
+            pose, source = self.predicted_pose(i), i - 1
+            self.add_node(i, pose, source, np.linalg.inv(pose) @ self.poses[source],
+                          np.linalg.inv(self.guess_covariance), self.guess_covariance, uncertain=True)
+
+    def place_on_map(self, i: int, anchors: list[int], name: str) -> int:
+        """Add frame i, the first after the known ones, from the chain's candidates or else from
+        zero motion or a global registration to each map frame in `anchors`; returns the frame
+        it was registered from. TrackingError when none passes (nothing is guessed)."""
+        passed = self.try_candidates(i)
+        for j in anchors if not passed else ():
+            for start, init in (("zero motion", lambda: np.eye(4)), ("global", lambda: self.registrar.global_guess(j, i))):
+                guess = init()
+                result = None if guess is None else self.register(j, i, "odometry", self.options, guess,
+                                                                  f"map frame {j}: {start}")
+                if result is not None and result.success:
+                    passed.append((result, j))
+                    break
+        if not self.add_registered(i, passed):
+            tried = sorted({e.source for e in self.edges if e.target == i})
+            raise TrackingError(f"{name}: frame {i}, the first new frame, registers to none of the map's frames "
+                                f"tried ({tried}): the new frames do not overlap the map, or their depth is not usable "
+                                "(a guess would put them anywhere, so they are not added)")
+        return self.graph.edges[-1].source_node_id
+
+    def try_candidates(self, i: int) -> list[tuple[PairResult, int]]:
+        """The (registration, source) of frame i's candidates that pass: up to the first that
+        passes and is not suspicious, or all of them when the camera moves fast."""
         passed = []
         search_all = self.fast_motion(i)
         for name, source, init, expected in self.candidates(i):
@@ -229,28 +345,31 @@ class _Run:
                 passed.append((result, source))
                 if not self.suspicious(result) and not search_all:
                     break
+        return passed
+
+    def add_registered(self, i: int, passed: list[tuple[PairResult, int]]) -> bool:
+        """Add frame i from the consensus of its passing registrations; False when there is none."""
         best, recovered = self.consensus(passed)
-        if best is None:  # nothing placed it: continue the motion, with a covariance to match
-            self.failed_frames.append(i)
-            pose, source, uncertain = self.predicted_pose(i), i - 1, True
-            transformation = np.linalg.inv(pose) @ self.poses[source]
-            covariance = self.guess_covariance
-            information = np.linalg.inv(covariance)  # weak next to the registrations' in the optimisation
+        if best is None:
+            return False
+        result, source = best
+        if recovered:
+            self.recovered_frames.append(i)
+        if self.suspicious(result):
+            self.flagged_frames.append(i)
         else:
-            result, source = best
-            if recovered:
-                self.recovered_frames.append(i)
-            if self.suspicious(result):
-                self.flagged_frames.append(i)
-            else:
-                self.residuals.append(result.residual_rms)
-            self.registered.append(i)
-            transformation, information, uncertain = result.transformation, result.information, False
-            pose = self.poses[source] @ np.linalg.inv(transformation)
-            spread = self.disagreement(pose, source, transformation, passed)
-            covariance = result.covariance + spread
-            if spread.any() and i not in self.flagged_frames:
-                self.flagged_frames.append(i)
+            self.residuals.append(result.residual_rms)
+        self.registered.append(i)
+        pose = self.poses[source] @ np.linalg.inv(result.transformation)
+        spread = self.disagreement(pose, source, result.transformation, passed)
+        if spread.any() and i not in self.flagged_frames:
+            self.flagged_frames.append(i)
+        self.add_node(i, pose, source, result.transformation, result.information, result.covariance + spread)
+        return True
+
+    def add_node(self, i: int, pose: np.ndarray, source: int, transformation: np.ndarray, information: np.ndarray,
+                 covariance: np.ndarray, uncertain: bool = False) -> None:
+        """Append frame i's pose, its graph node and its edge from `source` with the edge's covariance."""
         self.poses.append(pose)
         self.graph.nodes.append(o3d.pipelines.registration.PoseGraphNode(pose))
         add_edge(self.graph, source, i, transformation, information, uncertain)

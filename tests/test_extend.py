@@ -1,0 +1,210 @@
+"""A map that grows: concatenated sequences, tracking onto a map, a field that grows its box,
+Reconstruction.extend and `open3d-pnerf extend` (on the bundled sample: real frames)."""
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+from open3d_pnerf import Reconstruction, ReconstructionConfig, absolute_trajectory_error, reconstruct, track
+from open3d_pnerf.cli import EXIT_ERROR, main
+from open3d_pnerf.data import concatenate
+from open3d_pnerf.errors import CheckpointError, ConfigError, InputError, TrackingError
+from open3d_pnerf.fields import BlockEncoding, HashGridConfig, block_boxes, grow
+from open3d_pnerf.synthetic import synthetic_sequence
+from open3d_pnerf.tracking import track_onto
+
+FIRST, REST = slice(0, 6), slice(6, 11)
+
+
+def test_concatenate_keeps_every_frame_in_order(sample):
+    joined = concatenate([sample[FIRST], sample[REST]])
+    assert len(joined) == 11 and joined.image_size == sample.image_size
+    np.testing.assert_allclose(joined.K, sample.K)
+    np.testing.assert_array_equal(joined.timestamps, sample.timestamps)
+    np.testing.assert_allclose(joined.gt_poses, sample.gt_poses)
+    for i in (0, 7):
+        np.testing.assert_array_equal(joined[i].color, sample[i].color)
+        np.testing.assert_array_equal(joined[i].depth, sample[i].depth)
+
+
+def test_concatenate_rejects_frames_of_another_size_or_intrinsic(sample):
+    with pytest.raises(InputError, match="160x120.*do not match.*320x240"):
+        concatenate([sample[FIRST], sample[REST].at_scale(0.5)])
+    other = synthetic_sequence(3, 320, 240).sequence
+    with pytest.raises(InputError, match="intrinsic"):
+        concatenate([sample[FIRST], other])
+
+
+# -- a field that grows ---------------------------------------------------------------------------
+def small_field(box):
+    torch.manual_seed(0)
+    return HashGridConfig(levels=4, log2_table_size=12, max_resolution=64).build(torch.tensor(box, dtype=torch.float32))
+
+
+def test_a_grown_field_encodes_its_old_box_exactly_as_before_and_the_rest_with_the_new_block():
+    old_box, new_box = [[0, 0, 0], [1, 1, 1]], [[-1, 0, 0], [2, 1, 1.5]]
+    field = small_field(old_box)
+    with torch.no_grad():  # a trained-looking field: features far from their initial 1e-4
+        for p in field.encoding.parameters():
+            p.normal_()
+    inside = torch.rand(500, 3) * 0.98 + 0.01
+    outside = torch.rand(500, 3) * torch.tensor([3.0, 1, 1.5]) + torch.tensor([-1.0, 0, 0])
+    outside = outside[(outside[:, 0] < 0) | (outside[:, 0] > 1) | (outside[:, 2] > 1)]
+    before_sigma, before_features = field.geometry(inside)
+    grow(field, new_box, small_field(new_box).encoding)
+    assert isinstance(field.encoding, BlockEncoding) and len(field.encoding.blocks) == 2
+    np.testing.assert_allclose(field.aabb.numpy(), new_box)
+    after_sigma, after_features = field.geometry(inside)
+    torch.testing.assert_close(after_sigma, before_sigma)
+    torch.testing.assert_close(after_features, before_features)
+    old_block, new_block = field.encoding.blocks
+    field.density(outside).sum().backward()  # points outside the old box train the new block only
+    assert all(p.grad is None or not p.grad.any() for p in old_block.parameters())
+    assert any(p.grad is not None and p.grad.any() for p in new_block.parameters())
+    assert (field.density(outside) > 0).all()  # represented: no longer outside the field's box
+    assert block_boxes(field) == [old_box, [[-1, 0, 0], [2, 1, 1.5]]]
+    with pytest.raises(ValueError, match="does not hold"):
+        grow(field, old_box, small_field(old_box).encoding)
+
+
+def test_a_field_grown_twice_builds_again_from_its_boxes_with_the_same_weights():
+    boxes = [[[0, 0, 0], [1, 1, 1]], [[-1, 0, 0], [2, 1, 1]], [[-1, -1, 0], [2, 1, 1]]]
+    field = small_field(boxes[0])
+    for box in boxes[1:]:
+        grow(field, box, small_field(box).encoding)
+    assert len(field.encoding.blocks) == 3  # one block per growth, not nested
+    config = ReconstructionConfig.preset("test", **{"hashgrid.levels": 4, "hashgrid.log2_table_size": 12,
+                                                    "hashgrid.max_resolution": 64, "runtime.bf16_mlp": False})
+    rebuilt = config.build_field(boxes[-1], blocks=boxes)
+    rebuilt.load_state_dict(field.state_dict())
+    x = torch.rand(300, 3) * torch.tensor([3.0, 2, 1]) + torch.tensor([-1.0, -1, 0])
+    torch.testing.assert_close(rebuilt.density(x), field.density(x))
+
+
+def test_only_a_grid_field_grows():
+    config = ReconstructionConfig.preset("test", field="vanilla")
+    with pytest.raises(ConfigError, match="only a grid field can grow"):
+        config.build_field([[-1, 0, 0], [1, 1, 1]], blocks=[[[0, 0, 0], [1, 1, 1]], [[-1, 0, 0], [1, 1, 1]]])
+
+
+# -- tracking onto a map ----------------------------------------------------------------------------
+@pytest.mark.slow
+def test_tracking_onto_a_map_places_the_new_frames_as_tracking_them_all_at_once_does(sample):
+    whole = track(sample, progress=False)
+    first = track(sample[FIRST], progress=False)
+    onto = track_onto(concatenate([sample[FIRST], sample[REST]]), first.poses, first.covariances, progress=False)
+    np.testing.assert_allclose(onto.poses[:6], first.poses, atol=1e-9)  # the map stays where it is
+    np.testing.assert_allclose(onto.covariances[:6], first.covariances)
+    new = absolute_trajectory_error(onto.poses[6:], sample.gt_poses[6:])["rmse"]
+    assert new <= absolute_trajectory_error(whole.poses[6:], sample.gt_poses[6:])["rmse"] + 1e-3
+    placed = [e for e in onto.edges if e.target == 6 and e.success]
+    assert placed and placed[0].source < 6  # from the map, not from identity
+    # the map frame's own uncertainty is carried to the new frames: never below it
+    sd = np.sqrt(np.diagonal(onto.covariances, axis1=1, axis2=2))
+    assert (sd[6:] >= sd[placed[0].source] - 1e-9).all() and (sd[7:] > 0).all()
+
+
+@pytest.mark.slow
+def test_frames_that_do_not_overlap_the_map_raise_and_are_never_chained_from_a_guess(sample):
+    first = track(sample[FIRST], progress=False)
+    room = synthetic_sequence(3, 320, 240).sequence
+    elsewhere = o3d.camera.PinholeCameraIntrinsic(sample.intrinsic)
+    foreign = type(sample).from_rgbd_images([(f.color, f.depth) for f in room], elsewhere)
+    with pytest.raises(TrackingError, match="first new frame, registers to none of the map's frames"):
+        track_onto(concatenate([sample[FIRST], foreign]), first.poses, first.covariances, progress=False)
+
+
+# -- Reconstruction.extend ----------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def first_map(sample, tmp_path_factory):
+    cfg = ReconstructionConfig.preset("test", holdout_every=4, progress=False)
+    recon = reconstruct(sample[FIRST], cfg, poses=sample.gt_poses[FIRST])
+    return recon, recon.save(tmp_path_factory.mktemp("map") / "first")
+
+
+@pytest.mark.slow
+def test_extend_adds_the_frames_and_leaves_the_map_as_it_was(sample, first_map):
+    base, folder = first_map
+    weights = {k: v.clone() for k, v in base.field.state_dict().items()}
+    poses = base.poses.copy()
+    loaded = Reconstruction.load(folder)
+    assert len(loaded.frames) == 6
+    extended = loaded.extend(sample[REST], poses=sample.gt_poses[REST])
+    assert len(extended.poses) == 11 and len(extended.frames) == 11
+    np.testing.assert_array_equal(extended.train_indices, [1, 2, 3, 5, 7, 8, 9])
+    np.testing.assert_array_equal(extended.holdout_indices, [0, 4, 6, 10])
+    np.testing.assert_allclose(extended.poses, sample.gt_poses)
+    assert extended.stats["extended"] == [{"frames_before": 6, "frames_added": 5, "box_grown": False}]
+    assert extended.config.max_steps == round(0.3 * base.config.max_steps)  # the default budget
+    assert extended.mesh is not None and len(extended.mesh.triangles) > 0
+    for key, value in base.field.state_dict().items():  # the map extended is untouched
+        torch.testing.assert_close(value, weights[key])
+    np.testing.assert_array_equal(base.poses, poses)
+    np.testing.assert_array_equal(extended.frames[8].depth, sample[8].depth)
+
+
+@pytest.mark.slow
+def test_an_extended_folder_extends_again_and_a_far_segment_grows_the_box(sample, first_map, tmp_path):
+    base, folder = first_map
+    once = Reconstruction.load(folder).extend(sample[6:9], poses=sample.gt_poses[6:9])
+    once = Reconstruction.load(once.save(tmp_path / "once"))
+    shifted = sample.gt_poses[9:11].copy()
+    shifted[:, 0, 3] += 3.0  # the same images 3 m away: surfaces outside the box
+    twice = once.extend(sample[9:11], poses=shifted)
+    assert twice.stats["extended"][-1]["box_grown"] and len(twice.stats["extended"]) == 2
+    assert twice.aabb[1, 0] > base.aabb[1, 0] + 2.5
+    assert isinstance(twice.field.encoding, BlockEncoding)
+    again = Reconstruction.load(twice.save(tmp_path / "twice"))
+    np.testing.assert_allclose(again.aabb, twice.aabb)
+    out, expected = again.render(again.poses[1]), twice.render(twice.poses[1])
+    np.testing.assert_allclose(out["depth"], expected["depth"], rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_extend_rejects_bad_input_before_any_work(sample, first_map, tmp_path):
+    base, folder = first_map
+    with pytest.raises(InputError, match="do not match"):
+        base.extend(sample[REST].at_scale(0.5))
+    with pytest.raises(ConfigError, match="changes the map's field"):
+        base.extend(sample[REST], config=base.config.replace(field="grid"))
+    with pytest.raises(ConfigError, match="changes the map's field"):
+        base.extend(sample[REST], config=base.config.replace(**{"hashgrid.levels": 4}))
+    bare = Reconstruction.load(base.save(tmp_path / "bare", frames=False))
+    assert bare.frames is None and not (tmp_path / "bare" / "frames").exists()
+    with pytest.raises(InputError, match="does not keep the frames"):
+        bare.extend(sample[REST])
+    with pytest.raises(CheckpointError, match="not a saved reconstruction"):
+        Reconstruction.load(tmp_path)
+
+
+@pytest.mark.slow
+def test_saved_frames_that_do_not_match_the_reconstruction_are_refused(first_map, tmp_path):
+    import shutil
+
+    base, folder = first_map
+    copy = tmp_path / "copy"
+    shutil.copytree(folder, copy)
+    (copy / "frames" / "color" / "000005.png").unlink()
+    with pytest.raises(CheckpointError, match="frames"):
+        Reconstruction.load(copy)
+
+
+@pytest.mark.slow
+def test_cli_extend_writes_an_extended_folder_and_leaves_the_map(first_map, tmp_path, capsys):
+    base, folder = first_map
+    before = sorted(p.name for p in folder.iterdir())
+    out = tmp_path / "extended"
+    assert main(["--quiet", "extend", str(folder), "sample", "--frames", "6:11", "--gt-poses", "--out", str(out),
+                 "--max-steps", "5"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == 11 and report["training"]["steps"] == 5
+    assert {"mesh.ply", "frames", "report.md", "tsdf_mesh.ply"} <= {p.name for p in out.iterdir()}
+    assert sorted(p.name for p in folder.iterdir()) == before
+    assert main(["--quiet", "evaluate", str(out), "--no-tsdf"]) == 0  # on the frames saved with it
+    scores = json.loads((out / "evaluation.json").read_text())
+    assert scores["holdout_frames"] == [0, 4, 6, 10]
+    assert main(["--quiet", "extend", str(tmp_path), "sample", "--out", str(tmp_path / "x")]) == EXIT_ERROR
+    assert "reconstruction.json" in capsys.readouterr().err
