@@ -157,6 +157,10 @@ def fit(sequence: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray,
     stages.set_postfix_str("training")
     model = build_model(config, aabb, poses[train_idx], train_seq.K, covariances[train_idx], depth_range(train_seq),
                         field=field)
+    if base is not None and model.exposure is not None:  # the old frames keep the exposure they were given
+        with torch.no_grad():
+            model.exposure.log_gains[: len(base.train_indices)] = torch.as_tensor(
+                np.log(base.color_gains[base.train_indices]), dtype=torch.float32)
     batcher = RayBatcher(train_seq, targets, model.device, config.seed, config.runtime.cache_frames,
                          target_share=config.optimizer.target_ray_share)
     eval_rays = None
@@ -233,9 +237,12 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
 
 
 # -- extending a map --------------------------------------------------------------------------------
-EXTENSION_BUDGET = 0.3
+EXTENSION_BUDGET = 0.5
 """An extension's default training budget: this share of the map's own max_steps and time_budget_s
 (the field starts trained; the old frames are replayed with the new ones)."""
+EXTENSION_LR = 0.3
+"""An extension's default learning rate: this share of the map's own (a trained field restarted at
+the full rate drifts from what it mapped; chosen on TUM fr1/xyz, benchmarks/bench_mapping.py)."""
 
 
 def extend(base: Reconstruction, sequence: RGBDSequence, config: ReconstructionConfig | None = None, poses=None,
@@ -271,11 +278,13 @@ def extend(base: Reconstruction, sequence: RGBDSequence, config: ReconstructionC
 
 def extension_config(base: Reconstruction, config: ReconstructionConfig | None) -> ReconstructionConfig:
     """The config of an extension of `base`: `config` checked to keep base's field (ConfigError), or
-    for None base's own with EXTENSION_BUDGET of its training budget."""
+    for None base's own with EXTENSION_BUDGET of its training budget and EXTENSION_LR of its
+    learning rate."""
     old = base.config
     if config is None:
         budget = None if old.time_budget_s is None else EXTENSION_BUDGET * old.time_budget_s
-        config = old.replace(max_steps=max(1, round(EXTENSION_BUDGET * old.max_steps)), time_budget_s=budget)
+        config = old.replace(max_steps=max(1, round(EXTENSION_BUDGET * old.max_steps)), time_budget_s=budget,
+                             **{"optimizer.lr": EXTENSION_LR * old.optimizer.lr})
     config = checked_config(config)
     if (config.field, config.geometry, config.field_config) != (old.field, old.geometry, old.field_config):
         raise ConfigError(f"extend(): the config changes the map's field (field={old.field!r}, geometry="

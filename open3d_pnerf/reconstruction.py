@@ -308,7 +308,8 @@ class Reconstruction:
 
         sequence: RGB-D frames of the same size and intrinsic as this map's (InputError
         otherwise). config: default, this map's config with
-        :data:`~open3d_pnerf.pipeline.EXTENSION_BUDGET` of its training budget; a config that
+        :data:`~open3d_pnerf.pipeline.EXTENSION_BUDGET` of its training budget and
+        :data:`~open3d_pnerf.pipeline.EXTENSION_LR` of its learning rate; a config that
         changes the field type or its settings raises ConfigError. A segment that does not
         register to the map raises TrackingError. Needs :attr:`frames` (saved folders keep them).
         """

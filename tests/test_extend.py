@@ -138,7 +138,8 @@ def test_extend_adds_the_frames_and_leaves_the_map_as_it_was(sample, first_map):
     np.testing.assert_array_equal(extended.holdout_indices, [0, 4, 6, 10])
     np.testing.assert_allclose(extended.poses, sample.gt_poses)
     assert extended.stats["extended"] == [{"frames_before": 6, "frames_added": 5, "box_grown": False}]
-    assert extended.config.max_steps == round(0.3 * base.config.max_steps)  # the default budget
+    assert extended.config.max_steps == round(0.5 * base.config.max_steps)  # the default budget and rate
+    assert extended.config.optimizer.lr == pytest.approx(0.3 * base.config.optimizer.lr)
     assert extended.mesh is not None and len(extended.mesh.triangles) > 0
     for key, value in base.field.state_dict().items():  # the map extended is untouched
         torch.testing.assert_close(value, weights[key])
