@@ -14,7 +14,15 @@ export); peak memory of each process. Tracking: the ATE of each new segment trac
 (`track_onto`, on the frames as given: 640x480) against the same frames'
 ATE when the whole recording is tracked at once.
 
+The streaming Mapper (--kinds stream; run it alone, --jobs 1, as its frame rate is a target): the
+whole recording at 320x240 fed frame by frame (`fast` preset at image_scale 1, so it trains at
+320x240 too), every frame tracked and keyframes trained between frames; frames per second over
+the add() calls; its map after `finish()` (a further minute of training) against an offline
+reconstruction of the same kept frames with the same poses and split (the `fast` preset's
+budget), both scored on the held-out frames it kept; the ATE of every streamed frame.
+
     python benchmarks/bench_mapping.py [--scenes tum,7scenes] [--seeds 0,1,2] [--segments 3] [--name mapping]
+    python benchmarks/bench_mapping.py --kinds stream --jobs 1 --name mapping_stream
     python benchmarks/bench_mapping.py --name mapping --markdown-only
 
 Writes benchmarks/results/<name>.json and <name>.md.
@@ -73,6 +81,8 @@ def run_one(spec: dict) -> dict:
     cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=SEGMENT_MULTIPLE, seed=spec["seed"],
                                          progress=False)
     out = {k: spec[k] for k in ("scene", "seed", "kind", "upto")}
+    if spec["kind"] == "stream":
+        return {**out, **_stream(pn, spec)}
     if spec["kind"] == "tracking":
         whole = pn.track(concatenate(parts), progress=False).poses
         known = pn.track(parts[0], progress=False)
@@ -110,6 +120,32 @@ def run_one(spec: dict) -> dict:
     return {**out, "steps": steps, "peak_rss_mb": _peak_rss_mb()}
 
 
+def _stream(pn, spec: dict) -> dict:
+    """The streaming Mapper over the whole recording at 320x240, against the offline reconstruction."""
+    from tqdm.auto import tqdm
+
+    from open3d_pnerf.pipeline import fit
+
+    seq = pn.load_sequence(PATHS[spec["scene"]], image_scale=0.5)
+    cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=SEGMENT_MULTIPLE, seed=spec["seed"],
+                                         image_scale=1.0, progress=False)
+    mapper = pn.Mapper(seq.intrinsic, cfg)
+    t0 = time.perf_counter()
+    for i in range(len(seq)):
+        mapper.add(seq.to_open3d(i), seq.timestamps[i])
+    streaming = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    recon = mapper.finish()
+    finish_s = time.perf_counter() - t0
+    offline = fit(recon.frames, cfg, recon.poses, recon.covariances, recon.train_indices, recon.holdout_indices,
+                  {"tracked": True}, {}, tqdm(disable=True), time.perf_counter())
+    return {"frames": len(seq), "frames_per_s": round(len(seq) / streaming, 2), "summary": mapper.summary(),
+            "finish_s": round(finish_s, 1), "ate_mm": round(1000 * pn.absolute_trajectory_error(
+                mapper.poses, seq.gt_poses)["rmse"], 2),
+            "mapper": _scores(recon, recon.frames), "offline": _scores(offline, recon.frames),
+            "offline_steps": offline.stats["training"]["steps"], "peak_rss_mb": _peak_rss_mb()}
+
+
 def _peak_rss_mb() -> float:
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)  # Linux: KiB
 
@@ -135,7 +171,9 @@ def table(results: list[dict]) -> dict:
 def markdown(results: list[dict], meta: dict) -> str:
     lines = [f"`{meta['preset']}` preset, GT poses, every 4th frame of each segment held out, 320x240, seeds "
              f"{meta['seeds']}, {meta['segments']} segments; {meta['threads']} thread(s) per run, {meta['jobs']} at "
-             f"once; {meta['wall_minutes']} min in all; {meta['machine']}.", "",
+             f"once; {meta['wall_minutes']} min in all; {meta['machine']}.", ""]
+    extended = table(results)
+    lines += [] if not extended else [
              "Each cell: mean over the seeds (min..max). *extend*: the map of the segments before, extended with "
              "segment k by `Reconstruction.extend` (its default budget and learning rate); *retrain*: trained from "
              "scratch on segments 1..k with as many steps as the incremental map has had in all. Scores on the "
@@ -151,7 +189,7 @@ def markdown(results: list[dict], meta: dict) -> str:
         v = [r[key] for r in rows]
         return format(np.mean(v), fmt) + (f" ({min(v):{fmt}}..{max(v):{fmt}})" if len(v) > 1 else "")
 
-    for scene, by_k in table(results).items():
+    for scene, by_k in extended.items():
         for k, rows in sorted(by_k.items()):
             ratio = [r["wall_extend"] / r["wall_retrain"] for r in rows]
             lines.append(f"| {scene} | {k} | {cell(rows, 'psnr_extend', '.2f')} / {cell(rows, 'psnr_retrain', '.2f')} "
@@ -160,6 +198,19 @@ def markdown(results: list[dict], meta: dict) -> str:
                          f"| {np.mean(ratio):.2f} | {cell(rows, 'forgetting_db', '.2f')} / "
                          f"{cell(rows, 'forgetting_retrain_db', '.2f')} "
                          f"| {cell(rows, 'rss_incremental', '.0f')} / {cell(rows, 'rss_retrain', '.0f')} |")
+    stream = [r for r in results if r["kind"] == "stream"]
+    if stream:
+        lines += ["", "Streaming Mapper (320x240, every frame tracked, keyframes trained between frames; alone on the "
+                  "machine): frames per second over the add() calls; the map after finish() (a further minute of "
+                  "training) against the offline reconstruction of the same kept frames, poses and split.", "",
+                  "| scene | seed | frames/s | frames / keyframes / held out | ATE (mm) | held-out PSNR mapper / "
+                  "offline (dB) | depth L1 mapper / offline (mm) | peak RSS (MB) |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for r in stream:
+            m, o, n = r["mapper"], r["offline"], r["summary"]
+            lines.append(f"| {r['scene']} | {r['seed']} | {r['frames_per_s']:.2f} | {n['frames']} / {n['keyframes']} / "
+                         f"{n['holdout']} | {r['ate_mm']:.1f} | {m['psnr']:.2f} / {o['psnr']:.2f} | "
+                         f"{m['depth_l1_mm']:.1f} / {o['depth_l1_mm']:.1f} | {r['peak_rss_mb']:.0f} |")
     tracking = [r for r in results if r["kind"] == "tracking"]
     if tracking:
         lines += ["", "Tracking (no GT poses): ATE of each new segment tracked onto the map of the segments before "
@@ -171,8 +222,14 @@ def markdown(results: list[dict], meta: dict) -> str:
             for s in r["segments"]:
                 lines.append(f"| {r['scene']} | {s['segment']} | {s['ate_onto_mm']:.1f} | {s['ate_whole_mm']:.1f} "
                              f"| {s['onto_s']:.1f} |")
-    lines += ["", "### Targets (after the last segment)", "", "| scene | target | met in seeds |", "| --- | --- | --- |"]
-    for scene, by_k in table(results).items():
+    lines += ["", "### Targets", "", "| scene | target | met in seeds |", "| --- | --- | --- |"]
+    for scene in dict.fromkeys(r["scene"] for r in stream):
+        rows = [r for r in stream if r["scene"] == scene]
+        for text, test in (("streaming at 5 frames/s or more", lambda r: r["frames_per_s"] >= 5),
+                           ("mapper within 1 dB of the offline reconstruction",
+                            lambda r: r["mapper"]["psnr"] >= r["offline"]["psnr"] - 1)):
+            lines.append(f"| {scene} | {text} | {sum(map(test, rows))}/{len(rows)} |")
+    for scene, by_k in extended.items():  # after the last segment
         rows = by_k[max(by_k)]
         for text, test in (
                 ("extend within 0.5 dB of the retrain", lambda r: r["psnr_extend"] >= r["psnr_retrain"] - 0.5),
@@ -190,6 +247,7 @@ def main():
     ap.add_argument("--scenes", default="tum,7scenes")
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--segments", type=int, default=3)
+    ap.add_argument("--kinds", default="incremental,retrain,tracking", help="also: stream (run it with --jobs 1)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
     ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
     ap.add_argument("--preset", default="fast", help="'test': a smoke test of the script")
@@ -205,13 +263,17 @@ def main():
     if missing:
         raise SystemExit(f"shared data not found for {missing} (expected under {SHARED})")
     common = dict(segments=args.segments, threads=args.threads, preset=args.preset)
-    specs = [dict(scene=s, seed=seed, kind="incremental", upto=None, **common) for s in scenes for seed in seeds]
-    specs += [dict(scene=s, seed=seed, kind="retrain", upto=k, **common)
-              for s in scenes for seed in seeds for k in range(2, args.segments + 1)]
-    specs += [dict(scene=s, seed=0, kind="tracking", upto=None, **common) for s in scenes]
+    kinds = args.kinds.split(",")
+    specs = [dict(scene=s, seed=seed, kind=kind, upto=None, **common) for kind in ("incremental", "stream")
+             if kind in kinds for s in scenes for seed in seeds]
+    if "retrain" in kinds:
+        specs += [dict(scene=s, seed=seed, kind="retrain", upto=k, **common)
+                  for s in scenes for seed in seeds for k in range(2, args.segments + 1)]
+    if "tracking" in kinds:
+        specs += [dict(scene=s, seed=0, kind="tracking", upto=None, **common) for s in scenes]
     t0 = time.perf_counter()
     results = run_in_processes(run_one, specs, args.jobs, lambda r: f"{r['scene']} seed {r['seed']} {r['kind']} done")
-    meta = {"machine": machine(), "seeds": seeds, "segments": args.segments, "threads": args.threads,
+    meta = {"machine": machine(), "seeds": seeds, "segments": args.segments, "kinds": kinds, "threads": args.threads,
             "jobs": args.jobs, "preset": args.preset, "wall_minutes": round((time.perf_counter() - t0) / 60, 1)}
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(results, meta))

@@ -7,6 +7,8 @@ Public API::
     targets = open3d_pnerf.depth_targets(seq, traj)     # per-pixel depth mean and sigma
     mesh = open3d_pnerf.tsdf_fusion(seq, traj.poses)    # the Open3D TSDF baseline
     recon = open3d_pnerf.reconstruct(seq)               # all of it + the probabilistic NeRF
+    bigger = recon.extend(more_frames)                  # the map grows: new frames tracked onto it
+    mapper = open3d_pnerf.Mapper(seq.intrinsic)         # or map a live stream: mapper.add(rgbd_image)
     cmp = open3d_pnerf.compare_with_tsdf(seq, reconstruction=recon)
 """
 
@@ -20,6 +22,7 @@ from .comparison import Comparison  # noqa: E402
 from .config import ReconstructionConfig  # noqa: E402
 from .data import RGBDSequence, SfMData, load_sample, load_sequence  # noqa: E402
 from .losses import LossWeights  # noqa: E402
+from .mapper import Mapper  # noqa: E402
 from .model import PNeRFModel  # noqa: E402
 from .pipeline import compare_with_tsdf, reconstruct  # noqa: E402
 from .reconstruction import Reconstruction  # noqa: E402
@@ -34,6 +37,7 @@ __all__ = [
     "Comparison",
     "DepthTargets",
     "LossWeights",
+    "Mapper",
     "PNeRFModel",
     "RGBDSequence",
     "Reconstruction",

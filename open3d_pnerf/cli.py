@@ -1,4 +1,4 @@
-"""The `open3d-pnerf` command line: demo, reconstruct, extend, track, tsdf, render, evaluate.
+"""The `open3d-pnerf` command line: demo, reconstruct, extend, map, track, tsdf, render, evaluate.
 
 Errors a user can fix are printed as one line (`open3d-pnerf: error: ...`) with exit code 2;
 Ctrl-C exits with 130 after training has written its checkpoint. `reconstruct` and `demo`
@@ -14,10 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
+import open3d as o3d
+from tqdm.auto import tqdm
 
 from ._files import atomic_write
 from .comparison import compare, scores_table
@@ -30,6 +33,7 @@ from .evaluation import heldout_scores
 from .export import write_mesh_ply, write_point_cloud_ply
 from .fields import FIELD_CONFIGS
 from .losses import LOSSES
+from .mapper import Mapper, camera_frames
 from .pipeline import RUN_CONFIG, extend_folder, read_run_config, reconstruct_folder, resolve_poses
 from .reconstruction import Reconstruction
 from .tracking import absolute_trajectory_error
@@ -132,6 +136,49 @@ def cmd_extend(args) -> int:
     extend_folder(args.dir, seq, args.out, _overrides(args), _gt_poses(seq, args), inputs=_inputs(args))
     if not args.quiet:
         print((Path(args.out) / "report.md").read_text())
+    return EXIT_OK
+
+
+def cmd_map(args) -> int:
+    config = _config(args)
+    if args.camera:
+        intrinsic, frames = camera_frames(args.camera)
+        total = None
+    else:
+        if not args.data:
+            raise InputError("map needs DATA (a recorded folder or 'sample') or --camera")
+        seq = _load(args)
+        intrinsic, total = seq.intrinsic, len(seq)
+        frames = ((seq.to_open3d(i), seq.timestamps[i]) for i in range(len(seq)))
+    mapper = Mapper(intrinsic, config)
+    bar = tqdm(total=total, desc="map", unit="frame", disable=args.quiet, dynamic_ncols=True)
+    scored, score, streaming = 0, None, 0.0
+    try:
+        for frame in frames:
+            image, stamp = frame if isinstance(frame[0], o3d.geometry.RGBDImage) else (frame, None)
+            t0 = time.perf_counter()
+            mapper.add(image, stamp)
+            streaming += time.perf_counter() - t0
+            if not args.quiet and len(mapper.keyframes) >= scored + args.score_every and mapper.holdout:
+                scored, score = len(mapper.keyframes), mapper.heldout_psnr()
+            bar.update(1)
+            bar.set_postfix_str(f"keyframes {len(mapper.keyframes)}" + (f", held-out PSNR {score:.2f} dB" if score else ""))
+    except KeyboardInterrupt:  # a live camera: Ctrl-C ends the capture, the map is finished and saved
+        pass
+    bar.close()
+    if not len(mapper):
+        raise InputError("map: no frame was added")
+    recon = mapper.finish(args.finish)
+    out = Path(args.out)
+    mapper.save(out, recon)
+    summary = {**mapper.summary(), "frames_per_s": round(len(mapper) / max(streaming, 1e-9), 2),
+               "finish_s": config.mapping.finish_s if args.finish is None else args.finish}
+    if len(recon.holdout_indices):
+        summary["heldout"] = heldout_scores(recon, recon.frames)["model"]
+    atomic_write(out / "map_report.json", lambda p: Path(p).write_text(json.dumps(summary, indent=1, default=float)))
+    if not args.quiet:
+        print(f"mapped {summary['frames']} frames ({summary['keyframes']} keyframes) at "
+              f"{summary['frames_per_s']} frames/s; wrote {out} (resume with Mapper.resume)")
     return EXIT_OK
 
 
@@ -253,12 +300,13 @@ def _add_training_options(p, preset: bool = True):
                    "objective.weights.depth_pdf=0.2 (repeatable; VALUE read as JSON)")
 
 
-def _add_data_options(p, data=True):
+def _add_data_options(p, data=True, gt_poses=True):
     if data:
         p.add_argument("data", help="dataset folder (TUM, 7-Scenes, Open3D/Redwood) or 'sample'")
     p.add_argument("--frames", help="frames to use: 'start:stop:step' or 'i,j,k'")
     p.add_argument("--depth-trunc", type=float, default=0.0, help="drop depth beyond this (m)")
-    p.add_argument("--gt-poses", action="store_true", help="use the dataset's ground-truth poses, skip tracking")
+    if gt_poses:
+        p.add_argument("--gt-poses", action="store_true", help="use the dataset's ground-truth poses, skip tracking")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -291,6 +339,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder of the extended reconstruction")
     _add_training_options(p, preset=False)
     p.set_defaults(func=cmd_extend)
+
+    p = sub.add_parser("map", help="map a recorded folder frame by frame as if live (or a live camera)",
+                       description="Feed the frames of DATA in order through the streaming Mapper: each frame "
+                       "tracked as it comes, keyframes trained between frames (mapping.train_s_per_frame), then "
+                       "--finish seconds of training on every keyframe; writes the map to --out (a saved "
+                       "reconstruction that Mapper.resume and extend go on from) and map_report.json. With --camera, "
+                       "frames come from a RealSense or Azure Kinect camera through Open3D until Ctrl-C.")
+    p.add_argument("data", nargs="?", help="dataset folder or 'sample' (or use --camera)")
+    p.add_argument("--camera", choices=("realsense", "azure-kinect"), help="map a live camera instead of DATA")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--finish", type=float, metavar="SECONDS",
+                   help="training seconds on every keyframe at the end (default mapping.finish_s, 60)")
+    p.add_argument("--score-every", type=int, default=5, metavar="KEYFRAMES",
+                   help="show the map's held-out PSNR every this many keyframes (default 5)")
+    _add_data_options(p, data=False, gt_poses=False)
+    _add_training_options(p)
+    p.set_defaults(func=cmd_map)
 
     p = sub.add_parser("track", help="RGB-D odometry + pose graph: trajectory (TUM, .log, Open3D JSON) and covariances")
     _add_data_options(p)

@@ -30,6 +30,30 @@ from .training import OptimizerConfig, RuntimeConfig
 
 
 @dataclasses.dataclass
+class MappingConfig(Settings):
+    """How the streaming :class:`~open3d_pnerf.mapper.Mapper` picks keyframes and shares its time between frames."""
+
+    keyframe_every: int = setting(5, count(1))
+    """Every k-th frame is a keyframe (kept and trained on); the frame halfway between two is kept
+    as a held-out frame (scored, never trained on) when holdout_every > 0."""
+    keyframe_distance_m: float = setting(0.1, number(0, low_open=True, unit="m"))
+    """A frame is also a keyframe when the camera moved this far from the last keyframe ..."""
+    keyframe_angle_deg: float = setting(10.0, number(0, low_open=True, unit="degrees"))
+    """... or turned this far."""
+    train_s_per_frame: float = setting(0.05, number(0, unit="seconds"))
+    """Seconds of training after each frame is tracked: the per-frame compute budget (0: none)."""
+    finish_s: float = setting(60.0, number(0, unit="seconds"))
+    """Training seconds on every keyframe that :meth:`Mapper.finish` gives the map, with the
+    learning rate decaying as in an offline reconstruction."""
+    loops_per_keyframe: int = setting(1, count(0))
+    """Loop closures tried for each new keyframe (the nearest earlier keyframes not linked yet;
+    with tracking.loop_closure)."""
+    grow_pad: float = setting(0.25, number(0))
+    """When a keyframe's surfaces leave the scene box, the field grows to the union padded by this
+    share of its size (fewer, larger growths)."""
+
+
+@dataclasses.dataclass
 class ReconstructionConfig(Settings):
     """Settings of :func:`open3d_pnerf.reconstruct`. The defaults are the "fast" preset, which
     ``reconstruct(sequence)`` uses; others: ``ReconstructionConfig.preset("quality")``."""
@@ -86,6 +110,7 @@ class ReconstructionConfig(Settings):
     tracking: TrackingConfig = section(TrackingConfig)
     export: ExportConfig = section(ExportConfig)
     runtime: RuntimeConfig = section(RuntimeConfig)
+    mapping: MappingConfig = section(MappingConfig)
 
     PRESETS = {
         "fast": {},  # the defaults: a couple of minutes on a laptop CPU

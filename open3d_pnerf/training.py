@@ -218,8 +218,10 @@ class Trainer:
             self.save_checkpoint()
         return self.checkpoint_path
 
-    def train(self) -> dict:
-        """Run until max_steps or the time budget. Ctrl-C finishes the step, checkpoints, stops.
+    def train(self, seconds: float | None = None) -> dict:
+        """Run until max_steps or the time budget (or, given `seconds`, for at most that long in
+        this call: training resumes where it stopped at the next call). Ctrl-C finishes the
+        step, checkpoints, stops.
 
         Returns a summary: steps, seconds, samples_per_s, interrupted, last metrics.
         """
@@ -236,7 +238,7 @@ class Trainer:
         try:
             if self.dist.enabled:  # as DistributedDataParallel does: every rank starts from rank 0's weights
                 self.dist.broadcast_([p.data for p in self._trained_parameters()], "the initial parameters' broadcast")
-            while not self._done():
+            while not self._done() and not (seconds is not None and time.perf_counter() - run_start >= seconds):
                 self._set_lr()
                 try:
                     stats = self.train_step()

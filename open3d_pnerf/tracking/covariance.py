@@ -73,8 +73,10 @@ def pose_graph_hessian(pose_graph: o3d.pipelines.registration.PoseGraph,
 
 def pose_graph_covariances(
     pose_graph: o3d.pipelines.registration.PoseGraph, reference: int = 0, information: list[np.ndarray] | None = None,
+    nodes=None,
 ) -> np.ndarray:
-    """(N, 6, 6) float64 covariances of the node poses, [rotation (rad^2), translation (m^2)].
+    """(N, 6, 6) float64 covariances of the node poses, [rotation (rad^2), translation (m^2)]
+    (nodes: only these are computed, the others left zero; default all).
 
     The 6x6 diagonal blocks of ``H^-1`` with the reference node held fixed (its covariance is
     zero). ``H`` is :func:`pose_graph_hessian` of the edges' `information`: one (6, 6) per edge,
@@ -91,7 +93,8 @@ def pose_graph_covariances(
     _check_connected(pose_graph, n, reference)
     covariances = np.zeros((n, 6, 6))
     free = np.array([i for i in range(n) if i != reference], dtype=int)
-    if free.size == 0:
+    wanted = np.flatnonzero(np.isin(free, np.arange(n) if nodes is None else np.asarray(nodes, int)))
+    if wanted.size == 0:
         return covariances
     keep = (6 * free[:, None] + np.arange(6)).ravel()
     try:
@@ -102,13 +105,15 @@ def pose_graph_covariances(
             "(an edge information matrix is rank-deficient or zero)"
         ) from None
     dim = keep.size
-    for start in range(0, dim, _SOLVE_CHUNK):
-        stop = min(start + _SOLVE_CHUNK, dim)
-        rhs = np.zeros((dim, stop - start))
-        rhs[np.arange(start, stop), np.arange(stop - start)] = 1.0
+    columns = (6 * wanted[:, None] + np.arange(6)).ravel()  # the wanted nodes' rows/columns of the reduced H
+    for start in range(0, columns.size, _SOLVE_CHUNK):
+        chunk = columns[start : start + _SOLVE_CHUNK]
+        rhs = np.zeros((dim, chunk.size))
+        rhs[chunk, np.arange(chunk.size)] = 1.0
         cols = lu.solve(rhs)
-        for j in range(start // 6, stop // 6):
-            block = cols[6 * j : 6 * j + 6, 6 * j - start : 6 * j - start + 6]
+        for k in range(0, chunk.size, 6):
+            j = chunk[k] // 6
+            block = cols[6 * j : 6 * j + 6, k : k + 6]
             covariances[free[j]] = 0.5 * (block + block.T)
     return covariances
 

@@ -153,6 +153,10 @@ class FrameRegistration:
             self._cache.popitem(last=False)
         return image
 
+    def forget(self, index: int) -> None:
+        """Drop frame `index`'s cached image (a frame that was taken back and may come again)."""
+        self._cache.pop(index, None)
+
     def register(
         self,
         source: int,
