@@ -169,12 +169,12 @@ def table(results: list[dict]) -> dict:
 
 
 def markdown(results: list[dict], meta: dict) -> str:
-    lines = [f"`{meta['preset']}` preset, GT poses, every 4th frame of each segment held out, 320x240, seeds "
-             f"{meta['seeds']}, {meta['segments']} segments; {meta['threads']} thread(s) per run, {meta['jobs']} at "
-             f"once; {meta['wall_minutes']} min in all; {meta['machine']}.", ""]
+    lines = [f"`{meta['preset']}` preset, seeds {meta['seeds']}; {meta['threads']} thread(s) per run, {meta['jobs']} "
+             f"at once; {meta['wall_minutes']} min in all; {meta['machine']}.", ""]
     extended = table(results)
     lines += [] if not extended else [
-             "Each cell: mean over the seeds (min..max). *extend*: the map of the segments before, extended with "
+             f"A map that grows: {meta['segments']} consecutive segments, GT poses, every 4th frame of each segment "
+             "held out, 320x240. Each cell: mean over the seeds (min..max). *extend*: the map of the segments before, extended with "
              "segment k by `Reconstruction.extend` (its default budget and learning rate); *retrain*: trained from "
              "scratch on segments 1..k with as many steps as the incremental map has had in all. Scores on the "
              "held-out frames of segments 1..k; forgetting: the first segment's held-out PSNR when it was mapped "

@@ -148,7 +148,8 @@ class Mapper:
             if self.config.tracking.loop_closure and loops and len(self.keyframes) > 2:
                 _close_loops(self.run, self.frames, self.keyframes, self.run.options, None, 1.0, 45.0, loops, False,
                              new_from=index)
-        elif self.config.holdout_every and self._since_keyframe == self.config.mapping.keyframe_every // 2:
+        elif (self.config.holdout_every and index not in self.run.failed_frames
+              and self._since_keyframe == self.config.mapping.keyframe_every // 2):
             self.holdout.append(index)
         self._forget_frames(index)
         covariance = self._covariances([index])[0]
@@ -182,8 +183,11 @@ class Mapper:
 
     def _is_keyframe(self, index: int) -> bool:
         """Whether frame `index` (just tracked) becomes a keyframe: the first, every keyframe_every-th
-        since the last, or one the camera moved or turned far enough from the last."""
+        since the last, or one the camera moved or turned far enough from the last; never a frame
+        that no registration placed (its pose is a guess: it is not trained on)."""
         cfg = self.config.mapping
+        if index in self.run.failed_frames:
+            return False
         self._since_keyframe += 1
         if self.keyframes:
             moved_m, turned_deg = motion(np.linalg.inv(self.run.poses[self.keyframes[-1]]) @ self.run.poses[index])
@@ -262,13 +266,17 @@ class Mapper:
         batcher = RayBatcher(seq, _stack([self.targets[k] for k in self.keyframes]), model.device,
                              cfg.seed + len(self.keyframes), cfg.runtime.cache_frames,
                              target_share=cfg.optimizer.target_ray_share)
+        old = self.trainer
+        if old is not None and model.exposure is not None and old.model.exposure is not None:
+            with torch.no_grad():  # the keyframes trained before keep their exposure
+                known = old.model.exposure.log_gains
+                model.exposure.log_gains[: len(known)] = known
         trainer = Trainer(model, batcher, cfg)
-        if self.trainer is not None:  # keep what Adam learned about the field's parameters
-            state = self.trainer.optimizer.state
+        if old is not None:  # keep what Adam learned about the field's parameters
             for p in self.field.parameters():
-                if p in state:
-                    trainer.optimizer.state[p] = state[p]
-            trainer.step = self.trainer.step
+                if p in old.optimizer.state:
+                    trainer.optimizer.state[p] = old.optimizer.state[p]
+            trainer.step = old.step
         self.trainer = trainer
 
     def train(self, seconds: float) -> None:

@@ -189,8 +189,8 @@ def fit(sequence: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray,
                              {"frames_before": len(base.poses), "frames_added": len(poses) - len(base.poses),
                               "box_grown": bool((aabb != base.aabb).any())}]
     recon = Reconstruction(model, config, poses, covariances, train_seq.intrinsic, train_idx, hold_idx,
-                           timestamps=sequence.timestamps, color_gains=gains, observed=observed, frames=sequence,
-                           stats=stats)
+                           timestamps=sequence.timestamps, color_gains=gains, observed=observed,
+                           frames=sequence if sequence.has_depth else None, stats=stats)  # what extend() replays
     if dist.is_main and export:  # rank 0 calibrates the depth sigma on training frames and exports
         stages.set_postfix_str("export")
         t2 = time.perf_counter()
