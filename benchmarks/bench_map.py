@@ -42,7 +42,8 @@ COLUMNS = [  # label, key, factor, format
     ("depth L1 own hits (mm)", "depth_l1_hits", 1000, ".1f"), ("coverage", "coverage", 1, ".3f"),
     ("depth L1 model only (mm)", "depth_l1_only", 1000, ".1f"), ("model-only share", "only_share", 1, ".3f"),
     ("99.7% interval holds (model only)", "within_3_only", 1, ".3f"),
-    ("PSNR (dB)", "psnr", 1, ".2f"), ("PSNR common (dB)", "psnr_common", 1, ".2f")]
+    ("PSNR (dB)", "psnr", 1, ".2f"), ("PSNR common (dB)", "psnr_common", 1, ".2f"),
+    ("AUCE", "auce", 1, ".3f"), ("AUSE RMSE", "ause_rmse", 1, ".3f"), ("AUSE MAE", "ause_mae", 1, ".3f")]
 
 
 def run_one(spec: dict) -> dict:

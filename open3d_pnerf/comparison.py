@@ -49,6 +49,8 @@ ROWS = [  # label, key, factor, format
     ("errors within the 99.7% interval there", "within_3_only", 1, ".3f"),
     ("depth L1, every sensor pixel it renders (mm)", "depth_l1", 1000, ".1f"),
     ("errors within 68.3 / 95.4 / 99.7% intervals", "within_1", 1, ".2f"),
+    ("AUCE: calibration error over the 5-95% intervals (0: calibrated)", "auce", 1, ".3f"),
+    ("AUSE (RMSE / MAE): sigma's ranking of the errors (0: as the errors rank)", "ause_rmse", 1, ".3f"),
     ("accuracy (mm)", "accuracy", 1000, ".1f"), ("completeness (mm)", "completeness", 1000, ".1f"),
     ("Chamfer (mm)", "chamfer", 1000, ".1f")]
 
@@ -115,6 +117,8 @@ def scores_table(table: dict) -> list[str]:
         for m in table.values():
             if key == "within_1" and key in m:
                 cells.append(" / ".join(f"{m[f'within_{k}']:.3f}" for k in (1, 2, 3)))
+            elif key == "ause_rmse" and key in m:
+                cells.append(f"{m['ause_rmse']:.3f} / {m['ause_mae']:.3f}")
             else:
                 cells.append(format(m[key] * factor, fmt) if key in m else "-")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")

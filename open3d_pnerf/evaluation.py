@@ -14,8 +14,9 @@ from .error_law import GAUSSIAN_SHARES, depth_nll, sigma_multiple
 from .errors import InputError
 from .raycast import MeshRaycaster
 
-__all__ = ["GAUSSIAN_SHARES", "depth_calibration", "depth_errors", "depth_nll", "geometry_metrics", "heldout_scores",
-           "heldout_views", "mse_to_psnr", "psnr", "score_views", "sigma_multiple", "ssim", "training_depth_errors"]
+__all__ = ["GAUSSIAN_SHARES", "auce", "ause", "depth_calibration", "depth_errors", "depth_nll", "geometry_metrics", "heldout_scores",
+           "heldout_views", "mse_to_psnr", "psnr", "score_views", "sigma_multiple", "sparsification", "ssim",
+           "training_depth_errors"]
 
 
 def mse_to_psnr(mse):
@@ -73,6 +74,50 @@ def depth_calibration(pred: np.ndarray, std: np.ndarray, gt: np.ndarray, valid: 
     multiple = {k: k if np.isinf(dof) else sigma_multiple(GAUSSIAN_SHARES[k], dof) for k in (1, 2, 3)}
     out = {f"within_{k}": float((err <= multiple[k] * s).mean()) for k in (1, 2, 3)}
     out["nll"] = float(np.mean(depth_nll(err, s, dof)))
+    return out
+
+
+MIN_AUSE_PIXELS = 100  # an image with fewer scored pixels has no sparsification curve of 100 ratios
+CALIBRATION_LEVELS = np.round(np.arange(0.05, 0.951, 0.05), 2)
+"""The claimed shares over which :func:`auce` averages the calibration error (5, 10, ..., 95%)."""
+
+
+def auce(err: np.ndarray, sigma: np.ndarray, dof: float = np.inf) -> float:
+    """Area under the calibration error curve: the mean over p in CALIBRATION_LEVELS of |share of
+    |err| inside the law's central p-interval - p|, for depth errors `err` (M,) m and
+    1-sigma-equivalent `sigma` (M,) m of the law with `dof` degrees of freedom (inf: a Gaussian).
+    0 for a calibrated law at every level; nan without errors."""
+    err, sigma = np.abs(np.asarray(err, np.float64)), np.asarray(sigma, np.float64)
+    if err.size == 0:
+        return float("nan")
+    return float(np.mean([abs(np.mean(err <= sigma_multiple(p, dof) * sigma) - p) for p in CALIBRATION_LEVELS]))
+
+
+def sparsification(err: np.ndarray, order_by: np.ndarray, ratios: int = 100) -> dict:
+    """The sparsification curves of errors `err` (M,) removed largest `order_by` first: {"rmse": (ratios,),
+    "mae": (ratios,)}, the RMSE and MAE of what is left after removing the share k / ratios, k < ratios."""
+    err = np.abs(np.asarray(err, np.float64))[np.argsort(np.asarray(order_by, np.float64), kind="stable")]
+    kept = np.ceil(len(err) * (1 - np.arange(ratios) / ratios)).astype(int)  # the smallest-key pixels left
+    squares, absolute = np.cumsum(err**2), np.cumsum(err)
+    return {"rmse": np.sqrt(squares[kept - 1] / kept), "mae": absolute[kept - 1] / kept}
+
+
+def ause(err: np.ndarray, sigma: np.ndarray, ratios: int = 100) -> dict:
+    """Area under the sparsification error of one image (the Bayes' Rays protocol): pixels removed
+    most uncertain first (`sigma` (M,)) against the oracle order (largest error `err` (M,) first), at
+    `ratios` removal shares, both curves divided by their common maximum, the area between them
+    over the removed share (trapezoids): {"ause_rmse", "ause_mae"}. 0 when sigma ranks the errors
+    as they are; nan for an image without errors."""
+    err = np.abs(np.asarray(err, np.float64))
+    if err.size == 0:
+        return {"ause_rmse": float("nan"), "ause_mae": float("nan")}
+    by_sigma, oracle = sparsification(err, sigma, ratios), sparsification(err, err, ratios)
+    share = np.arange(ratios) / ratios
+    out = {}
+    for metric in ("rmse", "mae"):
+        top = max(by_sigma[metric].max(), oracle[metric].max())
+        gap = (by_sigma[metric] - oracle[metric]) / top if top > 0 else np.zeros(ratios)
+        out[f"ause_{metric}"] = float(np.sum((gap[1:] + gap[:-1]) / 2 * np.diff(share)))
     return out
 
 
@@ -234,6 +279,11 @@ class _Pool:
             if pred.size:
                 law = depth_calibration(pred, std, gt, dof=dof)
                 out.update(law if not suffix else {f"within_3{suffix}": law["within_3"]})
+        frames = [ause(pred - gt, std) for pred, std, gt in self.law[""] if pred.size >= MIN_AUSE_PIXELS]
+        if frames:  # the Bayes' Rays protocol: per image, then averaged; AUCE over every pixel
+            out.update({k: float(np.mean([f[k] for f in frames])) for k in frames[0]})
+            pred, std, gt = np.concatenate(self.law[""], 1)
+            out["auce"] = auce(pred - gt, std, dof)
         return {k: round(float(v), 5) for k, v in out.items()}
 
 

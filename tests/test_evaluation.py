@@ -21,6 +21,9 @@ from open3d_pnerf.comparison import METHODS, Comparison, comparison_figure
 from open3d_pnerf.pipeline import compare_with_tsdf
 from open3d_pnerf.errors import ConfigError, InputError
 from open3d_pnerf.evaluation import (
+    GAUSSIAN_SHARES,
+    auce,
+    ause,
     depth_calibration,
     depth_errors,
     depth_nll,
@@ -29,6 +32,7 @@ from open3d_pnerf.evaluation import (
     psnr,
     score_views,
     sigma_multiple,
+    sparsification,
     ssim,
 )
 from open3d_pnerf.pipeline import split_frames
@@ -512,3 +516,38 @@ def test_comparison_save_and_markdown(comparison, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == sorted(
         ["comparison.json", "comparison.md", "tsdf_mesh.ply", "sensor_mesh.ply"]
         + [f"compare_frame_{f:04d}.png" for f in c.frames])
+
+
+# -- AUSE and AUCE: the uncertainty-NeRF literature's yardsticks ----------------------------------
+def test_ause_is_zero_when_sigma_ranks_the_errors_as_they_are():
+    err = np.random.default_rng(0).normal(0, 0.02, 5000)
+    scores = ause(err, 3 * np.abs(err) + 0.001)  # any increasing function of the error: the oracle order
+    assert scores == {"ause_rmse": 0.0, "ause_mae": 0.0}
+
+
+def test_ause_of_a_sigma_unrelated_to_the_error_is_the_random_order_value():
+    rng = np.random.default_rng(1)
+    err = rng.normal(0, 0.02, 200_000)
+    oracle = sparsification(err, np.abs(err))
+    share = np.arange(100) / 100
+    for metric in ("rmse", "mae"):  # a random order keeps the whole set's error at every share
+        whole = oracle[metric][0]
+        gap = (whole - oracle[metric]) / whole
+        expected = float(np.sum((gap[1:] + gap[:-1]) / 2 * np.diff(share)))
+        assert ause(err, rng.random(err.size))[f"ause_{metric}"] == pytest.approx(expected, abs=0.01)
+        assert expected > 0.3
+
+
+def test_auce_is_near_zero_for_the_right_law_and_large_for_a_wrong_one():
+    rng = np.random.default_rng(2)
+    sigma = rng.uniform(0.005, 0.05, 200_000)
+    gaussian = rng.normal(0, sigma)
+    assert auce(gaussian, sigma) < 0.005
+    assert auce(gaussian, sigma / 2) > 0.2  # over-confident: every interval holds less than it claims
+    heavy = rng.standard_t(2.5, sigma.size) * sigma
+    from scipy import stats
+
+    scale = stats.t(2.5).ppf((1 + GAUSSIAN_SHARES[1]) / 2)  # the Student-t's 1-sigma equivalent in its units
+    assert auce(heavy, sigma * scale, dof=2.5) < 0.005
+    assert auce(heavy, sigma * scale) > auce(heavy, sigma * scale, dof=2.5) + 0.02
+    assert np.isnan(auce(np.zeros(0), np.zeros(0)))
