@@ -142,7 +142,12 @@ def cmd_extend(args) -> int:
 def cmd_map(args) -> int:
     config = _config(args)
     if args.camera:
-        intrinsic, frames = camera_frames(args.camera)
+        given = None
+        if args.intrinsic:
+            if not Path(args.intrinsic).is_file():
+                raise InputError(f"--intrinsic {args.intrinsic}: no such file")
+            given = o3d.io.read_pinhole_camera_intrinsic(args.intrinsic)
+        intrinsic, frames = camera_frames(args.camera, given)
         total = None
     else:
         if not args.data:
@@ -162,7 +167,8 @@ def cmd_map(args) -> int:
             if not args.quiet and len(mapper.keyframes) >= scored + args.score_every and mapper.holdout:
                 scored, score = len(mapper.keyframes), mapper.heldout_psnr()
             bar.update(1)
-            bar.set_postfix_str(f"keyframes {len(mapper.keyframes)}" + (f", held-out PSNR {score:.2f} dB" if score else ""))
+            held_out = f", held-out PSNR {score:.2f} dB" if score else ""
+            bar.set_postfix_str(f"keyframes {len(mapper.keyframes)}{held_out}")
     except KeyboardInterrupt:  # a live camera: Ctrl-C ends the capture, the map is finished and saved
         pass
     bar.close()
@@ -348,6 +354,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "frames come from a RealSense or Azure Kinect camera through Open3D until Ctrl-C.")
     p.add_argument("data", nargs="?", help="dataset folder or 'sample' (or use --camera)")
     p.add_argument("--camera", choices=("realsense", "azure-kinect"), help="map a live camera instead of DATA")
+    p.add_argument("--intrinsic", metavar="JSON", help="with --camera: the camera's Open3D PinholeCameraIntrinsic JSON "
+                   "(needed for azure-kinect; a RealSense reports its own)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--finish", type=float, metavar="SECONDS",
                    help="training seconds on every keyframe at the end (default mapping.finish_s, 60)")

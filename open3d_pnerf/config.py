@@ -167,13 +167,13 @@ class ReconstructionConfig(Settings):
         torch.manual_seed(self.seed)
         try:
             sdf = {"sdf": self.sdf} if self.geometry == "sdf" else {}
-            build = lambda box: self.field_config.build(torch.as_tensor(box), bf16=self.runtime.bf16_mlp, **sdf)  # noqa: E731
-            field = build(aabb if blocks is None else blocks[0])
+            build = self.field_config.build
+            field = build(torch.as_tensor(aabb if blocks is None else blocks[0]), bf16=self.runtime.bf16_mlp, **sdf)
             if blocks is not None:
                 if not isinstance(field, EncodedField):
                     raise ConfigError(f"config field field={self.field!r}: only a grid field can grow its box")
                 for box in blocks[1:]:
-                    grow(field, box, build(box).encoding)
+                    grow(field, box, build(torch.as_tensor(box), bf16=self.runtime.bf16_mlp, **sdf).encoding)
             return field.to(torch.device(self.device))
         except (RuntimeError, AssertionError) as exc:
             raise ConfigError(f"config field device={self.device!r} is not usable here ({exc})") from None

@@ -14,8 +14,8 @@ from .error_law import GAUSSIAN_SHARES, depth_nll, sigma_multiple
 from .errors import InputError
 from .raycast import MeshRaycaster
 
-__all__ = ["GAUSSIAN_SHARES", "auce", "ause", "depth_calibration", "depth_errors", "depth_nll", "geometry_metrics", "heldout_scores",
-           "heldout_views", "mse_to_psnr", "psnr", "score_views", "sigma_multiple", "sparsification", "ssim",
+__all__ = ["GAUSSIAN_SHARES", "auce", "ause", "depth_calibration", "depth_errors", "depth_nll", "geometry_metrics",
+           "heldout_scores", "heldout_views", "mse_to_psnr", "psnr", "score_views", "sigma_multiple", "sparsification", "ssim",
            "training_depth_errors"]
 
 

@@ -396,11 +396,13 @@ def _stack(targets: list[tuple[np.ndarray, ...]]) -> DepthTargets:
     return DepthTargets(*(np.stack(a) for a in zip(*targets)))
 
 
-def camera_frames(kind: str):
-    """(intrinsic, generator of o3d.geometry.RGBDImage) of a live camera that Open3D drives:
-    "realsense" (``o3d.t.io.RealSenseSensor``, depth aligned to colour) or "azure-kinect"
-    (``o3d.io.AzureKinectSensor``). Untested here (no camera): a thin path over Open3D's own
-    sensor classes; everything after the frames is what recorded folders go through."""
+def camera_frames(kind: str, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None):
+    """(intrinsic, generator of (colour, depth in metres) frames) of a live camera that Open3D
+    drives: "realsense" (``o3d.t.io.RealSenseSensor``, depth aligned to colour; its intrinsic from
+    the sensor unless `intrinsic` is given) or "azure-kinect" (``o3d.io.AzureKinectSensor``, which
+    does not report its intrinsic: `intrinsic` is needed). Untested here (no camera): a thin path
+    over Open3D's own sensor classes; everything after the frames is what recorded folders go
+    through."""
     if kind == "realsense":
         if not hasattr(o3d.t.io, "RealSenseSensor"):
             raise InputError("--camera realsense: this Open3D build has no RealSense support")
@@ -408,7 +410,7 @@ def camera_frames(kind: str):
         sensor.init_sensor(o3d.t.io.RealSenseSensorConfig({"align_depth_to_color": "true"}), 0, "")
         sensor.start_capture()
         meta = sensor.get_metadata()
-        intrinsic = meta.intrinsics
+        intrinsic = intrinsic or meta.intrinsics
         scale = float(meta.depth_scale)
 
         def frames():
@@ -420,12 +422,14 @@ def camera_frames(kind: str):
                 sensor.stop_capture()
         return intrinsic, frames()
     if kind == "azure-kinect":
+        if intrinsic is None:
+            raise InputError("--camera azure-kinect needs --intrinsic FILE (an Open3D PinholeCameraIntrinsic JSON of "
+                             "the colour camera the depth is aligned to): Open3D's live sensor does not report it")
         if not hasattr(o3d.io, "AzureKinectSensor"):
             raise InputError("--camera azure-kinect: this Open3D build has no Azure Kinect support")
         sensor = o3d.io.AzureKinectSensor(o3d.io.AzureKinectSensorConfig())
         if not sensor.connect(0):
             raise InputError("--camera azure-kinect: no Azure Kinect found")
-        intrinsic = o3d.camera.PinholeCameraIntrinsic(o3d.camera.PinholeCameraIntrinsicParameters.Kinect2ColorCameraDefault)
 
         def frames():
             while True:

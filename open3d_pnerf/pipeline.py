@@ -264,7 +264,8 @@ def extend(base: Reconstruction, sequence: RGBDSequence, config: ReconstructionC
     stages.set_postfix_str("tracking")
     if poses is not None:
         new_poses, new_covariances = camera_poses(poses, len(sequence), "poses", covariances)
-        poses, covariances = np.concatenate([base.poses, new_poses]), np.concatenate([base.covariances, new_covariances])
+        poses = np.concatenate([base.poses, new_poses])
+        covariances = np.concatenate([base.covariances, new_covariances])
         tracking = {"tracked": False}
     else:
         trajectory = config.tracking.track_onto(combined, base.poses, base.covariances, config.progress)

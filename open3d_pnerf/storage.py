@@ -4,8 +4,9 @@ The folder holds ``reconstruction.json`` (format version, config, scene box, dep
 intrinsic, frame split, timestamps, depth-error law, statistics), ``model.pt`` (the field's
 weights only), ``poses.npy``, ``covariances.npy``, ``color_gains.npy``, ``observed.npy`` (the centres of the
 voxels the training frames' depth saw, when there was depth), ``mesh.ply`` (with
-per-vertex ``depth_sigma``), ``point_cloud.ply`` (with per-point ``depth_sigma``), ``frames/`` (the frames it was built
-from, as an Open3D folder: what extending the map replays), and the trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's ``trajectory.json`` (a
+per-vertex ``depth_sigma``), ``point_cloud.ply`` (with per-point ``depth_sigma``), ``frames/``
+(the frames it was built from, as an Open3D folder: what extending the map replays), and the
+trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's ``trajectory.json`` (a
 PinholeCameraTrajectory with the training intrinsic). Reading never unpickles code
 (``torch.load(weights_only=True)``, ``np.load(allow_pickle=False)``).
 """
@@ -23,12 +24,12 @@ import torch
 from ._files import atomic_write_all, read_json_object
 from .camera import check_intrinsic, intrinsic_matrix, pinhole
 from .config import ReconstructionConfig
+from .data.open3d_folder import read_open3d_folder, write_sequence
 from .data.trajectories import write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
 from .error_law import UNSEEN, UNSEEN_RAMP, DepthErrorLaw
-from .data.open3d_folder import read_open3d_folder, write_sequence
 from .errors import CheckpointError, ConfigError, DatasetError, InputError
-from .fields import block_boxes
 from .export import Geometry, read_mesh_ply, read_point_cloud_ply, write_mesh_ply, write_point_cloud_ply
+from .fields import block_boxes
 from .model import build_model
 from .observed import ObservedSurface
 from .training import safe_torch_load

@@ -102,3 +102,10 @@ def test_cli_map_feeds_a_recorded_folder_as_if_live(tmp_path):
     assert report["heldout"]["psnr"] > 5
     assert {"mesh.ply", "frames", "mapper.json", "reconstruction.json"} <= {p.name for p in out.iterdir()}
     assert len(Mapper.resume(out)) == 11
+
+
+def test_cli_map_needs_data_or_a_camera_and_an_azure_kinect_needs_its_intrinsic(tmp_path, capsys):
+    assert main(["--quiet", "map", "--out", str(tmp_path)]) == 2
+    assert main(["--quiet", "map", "--camera", "azure-kinect", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "needs DATA" in err[0] and "--intrinsic" in err[1]
