@@ -224,17 +224,22 @@ class Mapper:
         """Depth targets of a new keyframe (fused with the keyframes just before it), the scene box
         (made, or grown when its surfaces leave it) and the model that trains on every keyframe."""
         t0 = time.perf_counter()
-        window = self.keyframes[-TARGET_WINDOW:]
-        cfg = self.config
-        seq = self.frames.sequence(window).scaled_by(cfg.image_scale)
-        poses = self.poses[window]
-        fused = cfg.targets.build(seq, poses, self._covariances(window), None, False)
-        self.targets[index] = tuple(a[-1].copy() for a in (fused.mean, fused.sigma, fused.valid, fused.support,
-                                                            fused.filled))
-        box = scene_box(_stack([self.targets[index]]), poses[-1:], seq.K)
+        seq = self._keyframe_targets(index)
+        box = scene_box(_stack([self.targets[index]]), self.poses[index][None], seq.K)
         self.seconds["targets"] += time.perf_counter() - t0
         self._fit_box(box, seq)
         self._rebuild_trainer()
+
+    def _keyframe_targets(self, index: int) -> RGBDSequence:
+        """Keep the depth targets of keyframe `index`, fused with the TARGET_WINDOW - 1 keyframes
+        before it (at their poses and covariances now); returns that window's frames at the training
+        resolution."""
+        window = [k for k in self.keyframes if k <= index][-TARGET_WINDOW:]
+        seq = self.frames.sequence(window).scaled_by(self.config.image_scale)
+        fused = self.config.targets.build(seq, self.poses[window], self._covariances(window), None, False)
+        self.targets[index] = tuple(a[-1].copy() for a in (fused.mean, fused.sigma, fused.valid, fused.support,
+                                                            fused.filled))
+        return seq
 
     def _fit_box(self, box: np.ndarray, seq: RGBDSequence) -> None:
         """Make the field over the first keyframe's box padded by grow_pad, or grow it when `box` (a new
@@ -382,11 +387,7 @@ class Mapper:
         mapper.field, mapper.aabb = recon.field, recon.aabb
         mapper.steps = int(state.get("steps", 0))
         for k in mapper.keyframes:  # targets again, each fused with the keyframes before it
-            window = [j for j in mapper.keyframes if j <= k][-TARGET_WINDOW:]
-            seq = mapper.frames.sequence(window).scaled_by(config.image_scale)
-            fused = config.targets.build(seq, recon.poses[window], recon.covariances[window], None, False)
-            mapper.targets[k] = tuple(a[-1].copy() for a in (fused.mean, fused.sigma, fused.valid, fused.support,
-                                                              fused.filled))
+            mapper._keyframe_targets(k)
         mapper._rebuild_trainer()
         return mapper
 

@@ -90,16 +90,15 @@ class PNeRFModel(nn.Module):
         poses are refined. n_rays, n_target: the whole batch's counts when `batch` is one rank's share."""
         terms = total_loss(self.loss_method, renders, batch.rgb, batch.mean, batch.sigma, weights, n_rays, n_target,
                            batch.weight)
+        share = 1.0 if n_rays is None else len(batch) / n_rays  # this rank's part of the batch
         sdf = getattr(self.field, "sdf", None)
         if sdf is not None and weights.eikonal > 0:
-            share = 1.0 if n_rays is None else len(batch) / n_rays
             rays = self.rays(batch)
             points = eikonal_points(self.field.aabb, rays.origins.detach(), rays.directions.detach(), rays.near,
                                     rays.far, max(1, round(sdf.eikonal_points * share)))
             terms["eikonal"] = eikonal_loss(self.field.signed_distance, points, sdf.eikonal_step)
             terms["loss"] = terms["loss"] + weights.eikonal * terms["eikonal"] * share
         if self.pose_corrections is not None:  # each share of a batch adds its part of the prior
-            share = 1.0 if n_rays is None else len(batch) / n_rays
             terms["pose_prior"] = self.pose_corrections.prior()
             terms["loss"] = terms["loss"] + self.pose_prior_weight * terms["pose_prior"] * share
         return terms

@@ -249,10 +249,11 @@ class _Run:
         self.registered = list(range(len(self.poses)))  # frames with a verified incoming registration (or known)
         self.residuals: list[float] = []  # point-to-plane residual RMS of the accepted odometry registrations
         self.covariances: dict[tuple[int, int], np.ndarray] = {}  # (source, target) -> 6x6, per graph edge
+        self.information: dict[tuple[int, int], np.ndarray] = {}  # their inverses, computed once (edge_information)
         for j in range(1, len(self.poses)):  # known poses: pinned to frame 0 (the optimisation's fixed node)
             add_edge(self.graph, j, 0, np.linalg.inv(self.poses[0]) @ self.poses[j], np.eye(6) / PINNED_VARIANCE,
                      uncertain=False)
-            self.covariances[j, 0] = PINNED_VARIANCE * np.eye(6)
+            self.set_covariance(j, 0, PINNED_VARIANCE * np.eye(6))
         limits = np.array([np.radians(options.max_rotation_deg)] * 3 + [options.max_translation_m] * 3)
         self.guess_covariance = np.diag(limits**2)  # a guessed pose: anywhere within the plausible motion
 
@@ -373,7 +374,7 @@ class _Run:
         self.poses.append(pose)
         self.graph.nodes.append(o3d.pipelines.registration.PoseGraphNode(pose))
         add_edge(self.graph, source, i, transformation, information, uncertain)
-        self.covariances[source, i] = covariance
+        self.set_covariance(source, i, covariance)
 
     def disagreement(self, pose: np.ndarray, source: int, transformation: np.ndarray,
                      passed: list[tuple[PairResult, int]]) -> np.ndarray:
@@ -423,7 +424,7 @@ class _Run:
                                                  message="residual far above the sequence's registrations")
         elif result.success:
             add_edge(self.graph, s, t, result.transformation, result.information, uncertain=True)
-            self.covariances[s, t] = LOOP_INFLATION * result.covariance
+            self.set_covariance(s, t, LOOP_INFLATION * result.covariance)
 
     def mark_pruned_loops(self) -> None:
         """Flag the loop closures that global optimisation pruned as unsuccessful."""
@@ -432,11 +433,15 @@ class _Run:
             if e.kind == "loop" and e.success and (e.source, e.target) not in kept:
                 self.edges[k] = dataclasses.replace(e, success=False, message="pruned by global optimisation")
 
+    def set_covariance(self, source: int, target: int, covariance: np.ndarray) -> None:
+        """The (6, 6) covariance of the graph edge source -> target, and its inverse."""
+        self.covariances[source, target] = covariance
+        self.information[source, target] = np.linalg.pinv(covariance, hermitian=True)
+
     def edge_information(self) -> list[np.ndarray]:
         """(6, 6) information of every edge of the graph, in its order: the inverse of the
         registration's residual-based covariance (see tracking.uncertainty)."""
-        return [np.linalg.pinv(self.covariances[e.source_node_id, e.target_node_id], hermitian=True)
-                for e in self.graph.edges]
+        return [self.information[e.source_node_id, e.target_node_id] for e in self.graph.edges]
 
 
 def _warn_failures(run: _Run, name: str) -> None:
