@@ -299,7 +299,7 @@ def continued_field(base: Reconstruction, box: np.ndarray, config: Reconstructio
     """(scene box, field) to train base's field further on frames whose own scene box is `box` (2, 3):
     base's box and a copy of its field when the box pokes out of it by at most the box's margin
     (scene.BOX_MARGIN), else the union of both with the copy grown by a new block
-    (:func:`~open3d_pnerf.fields.grow`: the old region renders as before)."""
+    (:func:`~open3d_pnerf.fields.grow`: the old region encoded as before the growth)."""
     field = copy.deepcopy(base.field).to(torch.device(config.device))
     old = base.aabb
     if (box[0] >= old[0] - BOX_MARGIN).all() and (box[1] <= old[1] + BOX_MARGIN).all():

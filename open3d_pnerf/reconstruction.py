@@ -301,9 +301,10 @@ class Reconstruction:
         in this map's world frame (or a trajectory, as :func:`~open3d_pnerf.reconstruct` takes
         them) are used. Every 'config.holdout_every'-th new frame is held out. The depth targets of
         all training frames are built again (the old frames fuse with the new), and training
-        continues from this map's weights on all of them (the old frames replayed, so nothing
-        mapped is forgotten). Where the new frames reach outside the scene box, the field grows a
-        new block over the larger box (the old region renders as before). Then calibration and
+        continues from this map's weights on all of them (the old frames replayed with the new
+        ones; what they still lose is measured in benchmarks/bench_mapping.py). Where the new frames
+        reach outside the scene box, the field grows a new block over the larger box (the old region
+        encoded as before the growth). Then calibration and
         export, as :func:`~open3d_pnerf.reconstruct` does.
 
         sequence: RGB-D frames of the same size and intrinsic as this map's (InputError
