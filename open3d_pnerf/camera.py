@@ -281,6 +281,22 @@ def nearest_per_pixel(pix: np.ndarray, z: np.ndarray) -> np.ndarray:
     return order[first]
 
 
+def reproject_depth(depth: np.ndarray, K: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """The z-depth image (H, W) m that a camera with the same intrinsic K would see after moving by
+    `transform` (4, 4: points in the original camera -> points in the moved one): every pixel's
+    point moved and kept at the pixel nearest to its projection, the nearest surface where several
+    land on one pixel; 0 where none lands."""
+    h, w = depth.shape
+    points = backproject(depth, K)[0] @ transform[:3, :3].T + transform[:3, 3]
+    points = points[points[:, 2] > 1e-6]
+    pix, inside = nearest_pixels(K, points, h, w)
+    pix, z = pix[inside], points[inside, 2]
+    keep = nearest_per_pixel(pix, z)
+    out = np.zeros(h * w, depth.dtype)
+    out[pix[keep]] = z[keep]
+    return out.reshape(h, w)
+
+
 def check_covariances(covariances, n: int, what: str = "covariances") -> np.ndarray:
     """(n, 6, 6) float64 pose covariances (zeros for None), checked finite and of that shape."""
     covs = np.zeros((n, 6, 6)) if covariances is None else np.asarray(covariances, np.float64)

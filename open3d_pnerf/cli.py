@@ -208,7 +208,7 @@ def cmd_track(args) -> int:
 def cmd_tsdf(args) -> int:
     seq = _load(args)
     out = Path(args.out)
-    poses = resolve_poses(seq, ReconstructionConfig(progress=not args.quiet), _gt_poses(seq, args))[0]
+    seq, poses, _, _ = resolve_poses(seq, ReconstructionConfig(progress=not args.quiet), _gt_poses(seq, args))
     volume = tsdf_fusion(seq, poses, voxel_size=args.voxel_size, sdf_trunc=4 * args.voxel_size,
                          return_volume=True, progress=not args.quiet)
     write_mesh_ply(out / "mesh.ply", volume.mesh())

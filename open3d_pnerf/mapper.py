@@ -51,6 +51,7 @@ class _LiveFrames:
     def __init__(self, intrinsic: o3d.camera.PinholeCameraIntrinsic):
         self.intrinsic = self.color_intrinsic = intrinsic
         self.K = np.asarray(intrinsic.intrinsic_matrix, np.float64)
+        self.image_size = (intrinsic.height, intrinsic.width)
         self.name = "stream"
         self.images: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
 
@@ -59,6 +60,8 @@ class _LiveFrames:
             raise InputError(f"stream frame {index} is no longer kept (neither a keyframe nor a held-out frame)")
         color, depth, timestamp = self.images[index]
         return Frame(color, depth, timestamp, index)
+
+    color_registered = True
 
     def color_on_depth_grid(self, color: np.ndarray) -> np.ndarray:
         return color
@@ -207,7 +210,7 @@ class Mapper:
         """(len(nodes), 6, 6) covariances of frames `nodes` in the pose graph as it is now; after a
         resume, the kept frames' saved ones, and the others' relative to the map plus the map frame's
         they were placed from (carried along the relative pose, as track_onto does)."""
-        graph = pose_graph_covariances(self.run.graph, information=self.run.edge_information(), nodes=nodes)
+        graph = pose_graph_covariances(self.run.graph, nodes=nodes)
         out = graph[nodes]
         if self._resumed is not None:
             kept, saved = self._resumed

@@ -23,7 +23,7 @@ from .batches import RayBatcher, heldout_rays
 from .camera import camera_poses
 from .comparison import Comparison, compare
 from .config import ReconstructionConfig
-from .data.sequence import RGBDSequence, check_sequence, concatenate, evenly_spaced
+from .data.sequence import RGBDSequence, check_sequence, concatenate, depth_in_color_cameras, evenly_spaced
 from .distributed import DistributedContext, distributed_session
 from .errors import CheckpointError, ConfigError, InputError, TrainingInterrupted
 from .export import export_geometry
@@ -59,32 +59,42 @@ def split_frames(n: int, holdout_every: int, train_views: int = 0, min_train: in
 
 # -- poses ---------------------------------------------------------------------------------------
 def resolve_poses(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covariances=None, cache=None,
-                  reuse: bool = False, write: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
-    """(poses (N, 4, 4), covariances (N, 6, 6), tracking): the given ones, checked (an (N, 4, 4)
-    camera-to-world array, an ``o3d.camera.PinholeCameraTrajectory`` or a Trajectory, whose
-    covariances are used unless `covariances` is given; zeros if none is known),
+                  reuse: bool = False, write: bool = True) -> tuple[RGBDSequence, np.ndarray, np.ndarray, dict]:
+    """(sequence, poses (N, 4, 4), covariances (N, 6, 6), tracking): the given poses, checked (an
+    (N, 4, 4) camera-to-world array, an ``o3d.camera.PinholeCameraTrajectory`` or a Trajectory,
+    whose covariances are used unless `covariances` is given; zeros if none is known),
     else the sequence's own (structure from motion, or the capture's), else tracked with the
-    config's tracking settings. Tracked poses are kept in the folder `cache` (when `write`) and
-    taken from it when `reuse` (a resumed run keeps the poses it trained on). tracking:
-    {"tracked": bool, and when tracked on a sequence with ground truth "ate_rmse_m"}."""
+    config's tracking settings. Tracked frames whose colour cameras were placed
+    (Trajectory.color_offsets) come back as those cameras see them: the colour images' poses, and
+    the sequence with each depth image moved into its colour camera
+    (:func:`~open3d_pnerf.data.sequence.depth_in_color_cameras`); otherwise the sequence is returned
+    as it is. Tracked poses are kept in the folder `cache` (when `write`) and taken from it when
+    `reuse` (a resumed run keeps the poses it trained on). tracking: {"tracked": bool, and when
+    tracked on a sequence with ground truth "ate_rmse_m" (of the depth cameras)}."""
     if poses is None and sequence.sfm is not None:
         poses, covariances = sequence.sfm.poses, sequence.sfm.covariances
     if poses is not None:
-        return (*camera_poses(poses, len(sequence), "poses", covariances), {"tracked": False})
-    files = {} if cache is None else {name: Path(cache) / f"{name}.npy" for name in ("poses", "covariances")}
-    if reuse and files and all(path.is_file() for path in files.values()):
+        return (sequence, *camera_poses(poses, len(sequence), "poses", covariances), {"tracked": False})
+    names = ("poses", "covariances", "color_offsets")
+    files = {} if cache is None else {name: Path(cache) / f"{name}.npy" for name in names}
+    if reuse and files and all(files[name].is_file() for name in names[:2]):
         poses, covariances = camera_poses(_cached_array(files["poses"]), len(sequence), "tracked poses",
                                           _cached_array(files["covariances"]))
+        offsets = _cached_array(files["color_offsets"]) if files["color_offsets"].is_file() else None
     else:
         trajectory = config.tracking.track(sequence, config.progress)
-        poses, covariances = trajectory.poses, trajectory.covariances
+        poses, covariances, offsets = trajectory.poses, trajectory.covariances, trajectory.color_offsets
         if files and write:
-            atomic_write_all({files["poses"]: lambda p: np.save(p, poses),
-                              files["covariances"]: lambda p: np.save(p, covariances)})
+            arrays = {"poses": poses, "covariances": covariances, "color_offsets": offsets}
+            files["color_offsets"].unlink(missing_ok=True)
+            atomic_write_all({files[name]: (lambda p, a=array: np.save(p, a))
+                              for name, array in arrays.items() if array is not None})
     tracking = {"tracked": True}
     if sequence.gt_poses is not None and sequence.gt_valid.any():
         tracking["ate_rmse_m"] = absolute_trajectory_error(poses, sequence.gt_poses)["rmse"]
-    return poses, covariances, tracking
+    if offsets is not None:
+        sequence, poses = depth_in_color_cameras(sequence, offsets), poses @ offsets
+    return sequence, poses, covariances, tracking
 
 
 def _cached_array(path: Path) -> np.ndarray:
@@ -115,8 +125,8 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     t0 = time.perf_counter()
 
     stages.set_postfix_str("tracking")  # given poses are checked first, before any work
-    poses, covariances, tracking = resolve_poses(sequence, config, poses, covariances, checkpoint_dir, resume,
-                                                 write=dist.is_main)
+    sequence, poses, covariances, tracking = resolve_poses(sequence, config, poses, covariances, checkpoint_dir,
+                                                           resume, write=dist.is_main)
     if dist.enabled:  # every rank trains on rank 0's trajectory, bit for bit
         poses = dist.broadcast_array(poses, "the poses' broadcast", config.device)
         covariances = dist.broadcast_array(covariances, "the covariances' broadcast", config.device)

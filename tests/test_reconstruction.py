@@ -744,14 +744,15 @@ def test_a_resumed_run_trains_on_the_poses_it_tracked_before(sample, tmp_path, m
     with pytest.raises(TrainingInterrupted):
         reconstruct(seq, cfg, checkpoint_dir=tmp_path / "ckpt")
     tracked = np.load(tmp_path / "ckpt" / "poses.npy")
-    assert tracked.shape == (4, 4, 4) and (tmp_path / "ckpt" / "covariances.npy").is_file()
+    offsets = np.load(tmp_path / "ckpt" / "color_offsets.npy")  # the colour cameras beside the depth ones
+    assert tracked.shape == offsets.shape == (4, 4, 4) and (tmp_path / "ckpt" / "covariances.npy").is_file()
     monkeypatch.undo()
     calls = []
     real = tracker.track
     monkeypatch.setattr(tracker, "track", lambda *a, **k: calls.append(1) or real(*a, **k))
     recon = reconstruct(seq, cfg, checkpoint_dir=tmp_path / "ckpt", resume=True)
     assert not calls and recon.stats["training"]["steps"] == 10 and recon.stats["tracking"]["tracked"] is True
-    np.testing.assert_array_equal(recon.poses, tracked)
+    np.testing.assert_array_equal(recon.poses, tracked @ offsets)  # the colour images' poses
     assert recon.stats["tracking"]["ate_rmse_m"] < 0.02  # tracked, and scored against the sample's ground truth
     reconstruct(seq, cfg.replace(max_steps=2), checkpoint_dir=tmp_path / "fresh")
     assert calls == [1]

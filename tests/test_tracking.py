@@ -279,9 +279,11 @@ def test_tum_fr1_xyz_full_pipeline_ate():
 @pytest.mark.data
 @pytest.mark.skipif(not SEVEN_SCENES_EVERY10.is_dir(), reason=f"no shared data at {SEVEN_SCENES_EVERY10}")
 def test_large_motion_is_recovered():
-    seq = load_sequence(SEVEN_SCENES_EVERY10).select(range(4, 12))  # 7 cm / 4 deg between frames
+    # 7 cm / 4 deg between frames: every start is tried (fast motion) and every frame placed
+    seq = load_sequence(SEVEN_SCENES_EVERY10).select(range(4, 12))
     traj = track(seq, loop_closure=False, progress=False)
-    assert traj.failed_frames == [] and traj.recovered_frames  # a global registration placed a frame
+    assert traj.failed_frames == []
+    assert {e.init for e in traj.edges} >= {"constant velocity", "zero motion", "global"}
     errors = pose_errors(traj.poses, seq.gt_poses)
     assert absolute_trajectory_error(traj.poses, seq.gt_poses)["rmse"] < 0.03
     assert np.linalg.norm(errors[:, 3:], axis=1).max() < 0.05  # anchored at frame 0: drift included

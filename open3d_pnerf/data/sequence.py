@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from ..camera import check_intrinsic, check_poses, intrinsic_matrix, missing_poses, scale_intrinsic
+from ..camera import check_intrinsic, check_poses, intrinsic_matrix, missing_poses, reproject_depth, scale_intrinsic
 from ..errors import DatasetError, InputError
 from .images import FrameReader, constant_reader, depth_in_metres
 from .sfm import SfMData
@@ -247,6 +247,12 @@ class RGBDSequence:
             convert_rgb_to_intensity=False,
         )
 
+    @property
+    def color_registered(self) -> bool:
+        """Whether the colour images are registered to the depth (same intrinsic, pixel for pixel)."""
+        return self._base_color_intrinsic is None or np.allclose(
+            self._base_color_intrinsic.intrinsic_matrix, self._base_intrinsic.intrinsic_matrix)
+
     def color_on_depth_grid(self, color: np.ndarray) -> np.ndarray:
         """Resample a colour image onto the depth image's pixel grid (identity if registered)."""
         if self._base_color_intrinsic is None:
@@ -326,6 +332,29 @@ def concatenate(sequences: Sequence[RGBDSequence], name: str | None = None) -> R
     gt_poses = np.concatenate(gt) if any(seq.gt_poses is not None for seq in sequences) else None
     return RGBDSequence(readers, first.intrinsic, np.concatenate([seq.timestamps for seq in sequences]), gt_poses,
                         name=name or "+".join(dict.fromkeys(seq.name for seq in sequences)))
+
+
+def depth_in_color_cameras(sequence: RGBDSequence, offsets: np.ndarray) -> RGBDSequence:
+    """`sequence` with each frame's depth moved into its colour camera, which sits at offsets[i]
+    (N, 4, 4) in the depth camera's frame (:func:`~open3d_pnerf.camera.reproject_depth`): the frames
+    of the colour images' poses (Trajectory.color_poses), colour on the depth grid, read lazily."""
+    offsets = np.asarray(offsets, np.float64)
+    if offsets.shape != (len(sequence), 4, 4) or not np.isfinite(offsets).all():
+        raise InputError(f"offsets must be finite with shape ({len(sequence)}, 4, 4), got {offsets.shape}")
+    readers = []
+    for i, offset in enumerate(offsets):
+        read = _registered_reader(sequence, i)
+        readers.append(_moved_reader(read, sequence.K, np.linalg.inv(offset)))
+    return RGBDSequence(readers, sequence.intrinsic, sequence.timestamps, sequence.gt_poses, name=sequence.name)
+
+
+def _moved_reader(read: FrameReader, K: np.ndarray, transform: np.ndarray) -> FrameReader:
+    def moved():
+        color, depth = read()
+        return color, reproject_depth(depth, K, transform)
+
+    moved.source = read.source
+    return moved
 
 
 def _registered_reader(sequence: RGBDSequence, index: int) -> FrameReader:

@@ -17,14 +17,18 @@ from __future__ import annotations
 import dataclasses
 from collections import OrderedDict
 
+import cv2
 import numpy as np
 import open3d as o3d
 
 from ..data.sequence import RGBDSequence
 from ..errors import InputError
-from .uncertainty import DepthFrame, fit, refine
+from .uncertainty import DepthFrame, refine
 
 odometry = o3d.t.pipelines.odometry
+ODOMETRY_HALF_FROM = 320
+"""Images at least this many pixels wide are registered by Open3D at half resolution (its cost is
+mostly the finest level's; the refinement then aligns the full images to a fraction of a pixel)."""
 _METHODS = {
     "hybrid": odometry.Method.Hybrid,
     "point_to_plane": odometry.Method.PointToPlane,
@@ -39,10 +43,10 @@ class OdometryOptions:
     method: str = "hybrid"
     """Open3D odometry loss: "hybrid" (photometric + depth), "point_to_plane" or "intensity"."""
     iterations: tuple[int, ...] = (20, 10, 5)
-    """Gauss-Newton iterations per pyramid level, finest level first."""
+    """Open3D's Gauss-Newton iterations per pyramid level, coarsest level first (the most)."""
     inlier_distance_m: float = 0.03
     """A source point whose aligned 3D position lies within this distance of the target's
-    point at the same pixel is a correspondence (overlap test and information matrix)."""
+    point at the same pixel is a correspondence (overlap test and refinement)."""
     min_overlap: float = 0.5
     """Minimum fraction of the source's valid depth pixels that must find a correspondence."""
     min_valid_depth: float = 0.05
@@ -97,9 +101,6 @@ class PairResult:
 
     transformation: np.ndarray
     """(4, 4) float64, maps source-camera points into the target camera (metres)."""
-    information: np.ndarray
-    """(6, 6) float64 Open3D information G^T G ([rotation, translation]); [5, 5] = count.
-    What Open3D's global optimisation weighs the edge by."""
     fitness: float
     """Open3D's fraction of all pixels that were odometry inliers at the finest level."""
     inlier_rmse: float
@@ -111,10 +112,16 @@ class PairResult:
     """Why the registration was rejected ("" when it succeeded)."""
     residual_rms: float = np.inf
     """RMS point-to-plane residual of the correspondences after alignment (m)."""
+    inliers: int = 0
+    """Source pixels with a correspondence after alignment (of the refinement's samples)."""
     covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.full((6, 6), np.inf))
     """(6, 6) covariance of the transformation from its residuals (uncertainty.fit)."""
     init: str = ""
     """Which initial guess the registration started from."""
+    odometry_transformation: np.ndarray | None = None
+    """(4, 4) Open3D's odometry answer before the point-to-plane refinement: with the hybrid loss,
+    the relative pose that fits the colour images (its intensity term dominates), which
+    tracking.color measures the colour cameras by (None when Open3D failed)."""
 
 
 class FrameRegistration:
@@ -131,12 +138,15 @@ class FrameRegistration:
         self.max_depth = float(max_depth)
         self.device = _device(device)
         self.K = sequence.K
-        self.intrinsic = o3d.core.Tensor(self.K)
+        self.odometry_scale = 0.5 if sequence.image_size[1] >= ODOMETRY_HALF_FROM else 1.0
+        self.intrinsic = o3d.core.Tensor(np.diag([self.odometry_scale] * 2 + [1.0]) @ self.K)
         self._cache: OrderedDict[int, _Image] = OrderedDict()
         self._cache_size = cache_size
 
     def image(self, index: int) -> "_Image":
-        """Frame `index` as an Open3D tensor RGBD image with its valid-depth fraction, depth, points, normals."""
+        """Frame `index`: an Open3D tensor RGBD image for the odometry (at half resolution from
+        ODOMETRY_HALF_FROM pixels wide: :meth:`register` finishes every registration on the full
+        depth images), its valid-depth fraction, and its full-resolution geometry for the refinement."""
         if index in self._cache:
             self._cache.move_to_end(index)
             return self._cache[index]
@@ -144,10 +154,13 @@ class FrameRegistration:
         color = np.ascontiguousarray(self.sequence.color_on_depth_grid(frame.color))
         depth = frame.depth
         valid = float(np.mean((depth > 0) & (depth < self.max_depth)))
+        geometry = DepthFrame.of(depth, self.K, self.max_depth)
+        if self.odometry_scale < 1:  # every other pixel (the colour blurred first), centres at even pixels
+            color, depth = cv2.pyrDown(color), np.ascontiguousarray(depth[::2, ::2])
         rgbd = o3d.t.geometry.RGBDImage(
             o3d.t.geometry.Image(o3d.core.Tensor(color)), o3d.t.geometry.Image(o3d.core.Tensor(depth))
         ).to(self.device)
-        image = _Image(rgbd, valid, DepthFrame.of(depth, self.K, self.max_depth))
+        image = _Image(rgbd, valid, geometry)
         self._cache[index] = image
         if len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)
@@ -175,7 +188,7 @@ class FrameRegistration:
         """
         init = np.eye(4) if init is None else np.asarray(init, dtype=np.float64)
         src, tgt = self.image(source), self.image(target)
-        failed = dict(transformation=init, information=np.zeros((6, 6)), success=False, init=init_name)
+        failed = dict(transformation=init, success=False, init=init_name)
         for which, image in (("source", src), ("target", tgt)):
             if image.valid < options.min_valid_depth:
                 return PairResult(
@@ -191,18 +204,14 @@ class FrameRegistration:
             transformation = result.transformation.numpy().astype(np.float64)
             if not np.isfinite(transformation).all():
                 raise RuntimeError("non-finite transformation")
-            information = odometry.compute_odometry_information_matrix(
-                src.rgbd.depth, tgt.rgbd.depth, self.intrinsic, o3d.core.Tensor(transformation),
-                options.inlier_distance_m, 1.0, self.max_depth,
-            ).numpy().astype(np.float64)
         except RuntimeError as exc:  # Open3D raises on singular systems and empty images
             return PairResult(
                 **failed, fitness=0.0, inlier_rmse=np.inf, overlap=0.0,
                 message=f"Open3D odometry failed ({str(exc).strip()})",
             )
-        transformation = refine(src.geometry, tgt.geometry, transformation, options.inlier_distance_m)
-        quality = fit(src.geometry, tgt.geometry, transformation, options.inlier_distance_m,
-                      options.misregistration_rad)
+        quality = refine(src.geometry, tgt.geometry, transformation, options.inlier_distance_m,
+                         options.misregistration_rad)
+        transformation = quality.transformation
         moved_m, turned_deg = motion(np.linalg.inv(init if prior is None else prior) @ transformation)
         message = ""
         if not quality.usable:
@@ -216,15 +225,16 @@ class FrameRegistration:
             )
         return PairResult(
             transformation=transformation if not message else init,
-            information=information,
             fitness=float(result.fitness),
             inlier_rmse=float(result.inlier_rmse),
             overlap=quality.overlap,
             success=not message,
             message=message,
             residual_rms=quality.residual_rms,
+            inliers=quality.inliers,
             covariance=quality.covariance,
             init=init_name,
+            odometry_transformation=result.transformation.numpy().astype(np.float64),
         )
 
     def global_guess(self, source: int, target: int) -> np.ndarray | None:

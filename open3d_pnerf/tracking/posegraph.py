@@ -2,18 +2,24 @@
 
 Follows Open3D's reconstruction system: node i holds frame i's camera-to-world pose; an
 edge (source, target, X) holds the transformation mapping source-camera points into the
-target camera, so a consistent graph has ``X = inv(pose_target) @ pose_source``. Odometry
-edges are certain; loop closures are uncertain (Open3D's line process may prune them).
+target camera, so a consistent graph has ``X = inv(pose_target) @ pose_source``, and its
+information is the inverse of the registration's covariance. Odometry edges are certain; loop
+closures are uncertain (Open3D's line process may prune them).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
+from scipy.stats import chi2
 
 from .odometry import motion
 
 registration = o3d.pipelines.registration
+
+LOOP_PRUNE_CHI2 = float(chi2.ppf(0.999, 6))
+"""A loop closure whose residual in the optimised graph exceeds this Mahalanobis square (the
+99.9% point of 6 degrees of freedom, 22.5) is pruned as inconsistent."""
 
 
 def add_edge(
@@ -58,22 +64,21 @@ def loop_closure_candidates(
     return sorted(pairs)
 
 
-def optimize(
-    graph: registration.PoseGraph,
-    max_correspondence_distance: float = 0.07,
-    preference_loop_closure: float = 0.1,
-    edge_prune_threshold: float = 0.25,
-) -> None:
+def optimize(graph: registration.PoseGraph, prune_chi2: float = LOOP_PRUNE_CHI2,
+             edge_prune_threshold: float = 0.25) -> None:
     """Levenberg-Marquardt global optimisation of `graph` in place, node 0 held fixed.
 
-    Defaults are those of Open3D's reconstruction system for frame-level graphs
-    (max_correspondence_distance = its depth_diff_max, 7 cm). Uncertain edges whose
-    line-process confidence drops below `edge_prune_threshold` are removed from the graph.
+    The edges' information matrices are inverse covariances, so the line process is set on the
+    chi-square scale: Open3D weighs an uncertain edge whose residual e gives e^T Lambda e = c by
+    (mu / (mu + c))^2 and removes it below `edge_prune_threshold` (0.25: c > mu), where
+    mu = preference_loop_closure * max_correspondence_distance^2 * (mean of the edges'
+    information[5, 5]); the preference is chosen so that mu = `prune_chi2`.
     """
+    mean_information = float(np.mean([edge.information[5, 5] for edge in graph.edges]))
     option = registration.GlobalOptimizationOption(
-        max_correspondence_distance=max_correspondence_distance,
+        max_correspondence_distance=1.0,
         edge_prune_threshold=edge_prune_threshold,
-        preference_loop_closure=preference_loop_closure,
+        preference_loop_closure=prune_chi2 / max(mean_information, 1e-300),
         reference_node=0,
     )
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):

@@ -13,6 +13,7 @@ from ..camera import adjoint, rotation_vector
 from ..data.sequence import RGBDSequence, check_sequence, evenly_spaced
 from ..errors import InputError, TrackingError
 from ..settings import FLAG, Settings, setting
+from .color import ColorOffsets
 from .covariance import pose_graph_covariances
 from .odometry import FrameRegistration, OdometryOptions, PairResult, motion
 from .posegraph import add_edge, loop_closure_candidates, optimize
@@ -34,10 +35,13 @@ class TrackingConfig(Settings):
 
     loop_closure: bool = setting(True, FLAG)
     """Register keyframes that see the same place and optimise the pose graph."""
+    color_poses: bool = setting(True, FLAG)
+    """Place each frame's colour camera beside its depth camera (see tracking.color) and train on
+    the colour images' poses, each depth image moved into its colour camera."""
 
     def track(self, sequence: RGBDSequence, progress: bool = True) -> Trajectory:
         """:func:`track` with these settings."""
-        return track(sequence, loop_closure=self.loop_closure, progress=progress)
+        return track(sequence, loop_closure=self.loop_closure, progress=progress, color_poses=self.color_poses)
 
     def track_onto(self, sequence: RGBDSequence, known_poses: np.ndarray, known_covariances: np.ndarray,
                    progress: bool = True) -> Trajectory:
@@ -59,11 +63,13 @@ def track(
     loop_max_distance_m: float = 1.0,
     loop_max_angle_deg: float = 45.0,
     loops_per_keyframe: int = 10,
+    color_poses: bool = True,
 ) -> Trajectory:
     """Estimate camera poses and their 6x6 covariances for an RGB-D sequence.
 
     1. Frame i is registered to frame i-1 by Open3D's tensor RGB-D odometry (``odometry``:
-       hybrid loss by default), from the constant-velocity guess (the last motion, repeated).
+       hybrid loss by default; at half resolution from 320 pixels wide, the refinement below
+       working on the full depth images), from the constant-velocity guess (the last motion, repeated).
        Each result is checked (:class:`OdometryOptions`: overlap, plausible motion) and its
        point-to-plane residual compared with the median of the sequence's registrations so far.
        A failed or suspicious one (residual above ``odometry.residual_ratio`` times the median)
@@ -93,6 +99,10 @@ def track(
        independent), plus ``odometry.misregistration_rad`` for what a real sensor's calibration
        leaves; a loop closure's is LOOP_INFLATION times larger (its images are already in the
        chain).
+    4. Colour cameras (``color_poses``, when the colour is registered to the depth): Open3D's
+       hybrid answer for each frame from the frame before it (its intensity term dominates, so it
+       fits the colour images) is kept beside the refined one, and every frame's colour-camera
+       offset solved from them (:mod:`~open3d_pnerf.tracking.color`; Trajectory.color_offsets).
 
     sequence: an :class:`~open3d_pnerf.RGBDSequence` of at least 2 frames. max_depth: depth
     beyond this (m) is ignored. device: Open3D device for odometry (None = "CPU:0"). progress:
@@ -104,8 +114,8 @@ def track(
         raise InputError(f"keyframe_every must be an integer >= 1, got {keyframe_every!r}")
     if max_keyframes is not None and (not isinstance(max_keyframes, (int, np.integer)) or max_keyframes < 2):
         raise InputError(f"max_keyframes must be None or an integer >= 2, got {max_keyframes!r}")
-    run = _Run(FrameRegistration(sequence, max_depth, device), odometry)
-
+    run = _Run(FrameRegistration(sequence, max_depth, device), odometry,
+               colors=ColorOffsets() if color_poses and sequence.color_registered else None)
     for i in tqdm(range(1, n), desc="odometry", disable=not progress, leave=False):
         run.track_frame(i)
     if not any(e.success for e in run.edges):
@@ -196,14 +206,15 @@ def _close_loops(run: "_Run", sequence: RGBDSequence, keyframes: list[int], odom
     for s, t in tqdm(pairs, desc="loop closures", disable=not progress, leave=False):
         run.close_loop(s, t, loop_odometry)
     if any(e.kind == "loop" and e.success for e in run.edges):
-        optimize(run.graph, max_correspondence_distance=odometry.inlier_distance_m)
+        optimize(run.graph)
         run.mark_pruned_loops()
 
 
 def _trajectory(run: "_Run", sequence: RGBDSequence) -> Trajectory:
-    """The Trajectory of a finished run: the graph's poses, their covariances, the registration log."""
+    """The Trajectory of a finished run: the graph's poses, their covariances, the registration log,
+    and the colour cameras' offsets when the run measured them."""
     poses = np.stack([np.asarray(node.pose, dtype=np.float64) for node in run.graph.nodes])
-    covariances = pose_graph_covariances(run.graph, information=run.edge_information())
+    covariances = pose_graph_covariances(run.graph)
     return Trajectory(
         poses=poses,
         covariances=covariances,
@@ -213,6 +224,7 @@ def _trajectory(run: "_Run", sequence: RGBDSequence) -> Trajectory:
         timestamps=np.asarray(sequence.timestamps, dtype=np.float64).copy(),
         flagged_frames=run.flagged_frames,
         recovered_frames=run.recovered_frames,
+        color_offsets=None if run.colors is None else run.colors.solve(poses),
     )
 
 
@@ -228,16 +240,17 @@ def _default_loop_odometry(sequence: RGBDSequence, odometry: OdometryOptions) ->
     """`odometry`, made purely geometric when the colour is not registered to the depth:
     wide-baseline loop closures magnify any colour-to-depth misregistration in the photometric
     term."""
-    registered = np.allclose(sequence.color_intrinsic.intrinsic_matrix, sequence.intrinsic.intrinsic_matrix)
-    return odometry if registered else dataclasses.replace(odometry, method="point_to_plane")
+    return odometry if sequence.color_registered else dataclasses.replace(odometry, method="point_to_plane")
 
 
 class _Run:
     """Mutable state of one tracking run: chain poses, pose graph, registration log and statistics."""
 
-    def __init__(self, registrar: FrameRegistration, options: OdometryOptions, known_poses: np.ndarray | None = None):
+    def __init__(self, registrar: FrameRegistration, options: OdometryOptions, known_poses: np.ndarray | None = None,
+                 colors: ColorOffsets | None = None):
         self.registrar = registrar
         self.options = options
+        self.colors = colors  # gathers the colour relative poses of consecutive frames, when given
         self.poses = [np.eye(4)] if known_poses is None else list(known_poses)
         self.graph = o3d.pipelines.registration.PoseGraph()
         for pose in self.poses:
@@ -248,12 +261,8 @@ class _Run:
         self.recovered_frames: list[int] = []
         self.registered = list(range(len(self.poses)))  # frames with a verified incoming registration (or known)
         self.residuals: list[float] = []  # point-to-plane residual RMS of the accepted odometry registrations
-        self.covariances: dict[tuple[int, int], np.ndarray] = {}  # (source, target) -> 6x6, per graph edge
-        self.information: dict[tuple[int, int], np.ndarray] = {}  # their inverses, computed once (edge_information)
         for j in range(1, len(self.poses)):  # known poses: pinned to frame 0 (the optimisation's fixed node)
-            add_edge(self.graph, j, 0, np.linalg.inv(self.poses[0]) @ self.poses[j], np.eye(6) / PINNED_VARIANCE,
-                     uncertain=False)
-            self.set_covariance(j, 0, PINNED_VARIANCE * np.eye(6))
+            self.add_edge(j, 0, np.linalg.inv(self.poses[0]) @ self.poses[j], PINNED_VARIANCE * np.eye(6))
         limits = np.array([np.radians(options.max_rotation_deg)] * 3 + [options.max_translation_m] * 3)
         self.guess_covariance = np.diag(limits**2)  # a guessed pose: anywhere within the plausible motion
 
@@ -263,7 +272,7 @@ class _Run:
         result = self.registrar.register(source, target, init, options, init_name, prior)
         self.edges.append(
             Edge(source, target, kind, result.success, result.fitness, result.inlier_rmse,
-                 result.overlap, int(round(result.information[5, 5])), result.message, result.residual_rms,
+                 result.overlap, result.inliers, result.message, result.residual_rms,
                  init_name)
         )
         return result
@@ -312,8 +321,8 @@ class _Run:
         if not self.add_registered(i, passed):  # nothing placed it: continue the motion, with a covariance to match
             self.failed_frames.append(i)
             pose, source = self.predicted_pose(i), i - 1
-            self.add_node(i, pose, source, np.linalg.inv(pose) @ self.poses[source],
-                          np.linalg.inv(self.guess_covariance), self.guess_covariance, uncertain=True)
+            self.add_node(i, pose, source, np.linalg.inv(pose) @ self.poses[source], self.guess_covariance,
+                          uncertain=True)
 
     def place_on_map(self, i: int, anchors: list[int], name: str) -> int:
         """Add frame i, the first after the known ones, from the chain's candidates or else from
@@ -365,16 +374,19 @@ class _Run:
         spread = self.disagreement(pose, source, result.transformation, passed)
         if spread.any() and i not in self.flagged_frames:
             self.flagged_frames.append(i)
-        self.add_node(i, pose, source, result.transformation, result.information, result.covariance + spread)
+        self.add_node(i, pose, source, result.transformation, result.covariance + spread)
+        if self.colors is not None and source == i - 1 and result.odometry_transformation is not None:
+            back = np.linalg.inv(result.transformation)  # frame i -> i-1, its covariance carried over
+            ad = adjoint(back)
+            self.colors.add(i, np.linalg.inv(result.odometry_transformation), back, ad @ result.covariance @ ad.T)
         return True
 
-    def add_node(self, i: int, pose: np.ndarray, source: int, transformation: np.ndarray, information: np.ndarray,
-                 covariance: np.ndarray, uncertain: bool = False) -> None:
+    def add_node(self, i: int, pose: np.ndarray, source: int, transformation: np.ndarray, covariance: np.ndarray,
+                 uncertain: bool = False) -> None:
         """Append frame i's pose, its graph node and its edge from `source` with the edge's covariance."""
         self.poses.append(pose)
         self.graph.nodes.append(o3d.pipelines.registration.PoseGraphNode(pose))
-        add_edge(self.graph, source, i, transformation, information, uncertain)
-        self.set_covariance(source, i, covariance)
+        self.add_edge(source, i, transformation, covariance, uncertain)
 
     def disagreement(self, pose: np.ndarray, source: int, transformation: np.ndarray,
                      passed: list[tuple[PairResult, int]]) -> np.ndarray:
@@ -423,8 +435,7 @@ class _Run:
             self.edges[-1] = dataclasses.replace(self.edges[-1], success=False,
                                                  message="residual far above the sequence's registrations")
         elif result.success:
-            add_edge(self.graph, s, t, result.transformation, result.information, uncertain=True)
-            self.set_covariance(s, t, LOOP_INFLATION * result.covariance)
+            self.add_edge(s, t, result.transformation, LOOP_INFLATION * result.covariance, uncertain=True)
 
     def mark_pruned_loops(self) -> None:
         """Flag the loop closures that global optimisation pruned as unsuccessful."""
@@ -433,15 +444,11 @@ class _Run:
             if e.kind == "loop" and e.success and (e.source, e.target) not in kept:
                 self.edges[k] = dataclasses.replace(e, success=False, message="pruned by global optimisation")
 
-    def set_covariance(self, source: int, target: int, covariance: np.ndarray) -> None:
-        """The (6, 6) covariance of the graph edge source -> target, and its inverse."""
-        self.covariances[source, target] = covariance
-        self.information[source, target] = np.linalg.pinv(covariance, hermitian=True)
-
-    def edge_information(self) -> list[np.ndarray]:
-        """(6, 6) information of every edge of the graph, in its order: the inverse of the
-        registration's residual-based covariance (see tracking.uncertainty)."""
-        return [self.information[e.source_node_id, e.target_node_id] for e in self.graph.edges]
+    def add_edge(self, source: int, target: int, transformation: np.ndarray, covariance: np.ndarray,
+                 uncertain: bool = False) -> None:
+        """Add the graph edge source -> target with its (6, 6) covariance; the edge's information,
+        what the optimisation weighs it by and the covariances are marginals of, is its inverse."""
+        add_edge(self.graph, source, target, transformation, np.linalg.pinv(covariance, hermitian=True), uncertain)
 
 
 def _warn_failures(run: _Run, name: str) -> None:

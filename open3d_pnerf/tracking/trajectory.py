@@ -16,7 +16,8 @@ class Edge:
     failure) or "loop" (a loop closure between keyframes). success: the result passed the
     checks (and, for loops, survived global optimisation). fitness / inlier_rmse: Open3D's
     odometry result. overlap: fraction of the source's valid depth pixels with a
-    correspondence after alignment. correspondences: entry [5, 5] of the information.
+    correspondence after alignment. correspondences: how many of the refinement's sampled
+    source pixels have one.
     residual_rms: point-to-plane residual after alignment (m); init: the initial guess it
     started from ("constant velocity", "zero motion", "global", "from frame j", "loop").
     """
@@ -51,6 +52,9 @@ class Trajectory:
     recovered_frames: frames whose registration from the constant-velocity guess failed, looked
     suspicious or was outvoted, and that another initial guess placed.
     timestamps: (N,) float64 seconds, from the sequence.
+    color_offsets: (N, 4, 4) each frame's colour camera in its depth camera's frame (the colour
+    image's pose is ``poses[i] @ color_offsets[i]``, see :mod:`~open3d_pnerf.tracking.color`), or
+    None when not estimated (colour not registered to the depth, or not asked for).
     """
 
     poses: np.ndarray
@@ -61,6 +65,12 @@ class Trajectory:
     timestamps: np.ndarray
     flagged_frames: list[int] = dataclasses.field(default_factory=list)
     recovered_frames: list[int] = dataclasses.field(default_factory=list)
+    color_offsets: np.ndarray | None = None
+
+    @property
+    def color_poses(self) -> np.ndarray:
+        """(N, 4, 4) camera-to-world poses of the colour images (the depth ones when no offsets)."""
+        return self.poses if self.color_offsets is None else self.poses @ self.color_offsets
 
     def __len__(self) -> int:
         return len(self.poses)

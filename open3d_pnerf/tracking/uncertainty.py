@@ -6,8 +6,8 @@ That snapping leaves each registration up to a fraction of a pixel off in a way 
 (on the synthetic room at 320x240 the answers of one frame pair under independent noise draws
 fall in two clusters 2.4 mrad apart, ten times the spread the noise explains). :func:`refine`
 therefore finishes every registration with Gauss-Newton steps of a point-to-plane alignment that
-interpolates the target depth and normals at the projection's sub-pixel position, and
-:func:`fit` scores the result the same way.
+interpolates the target depth and normals at the projection's sub-pixel position, and scores the
+answer the same way. (The colour images get their own cameras: see tracking.color.)
 
 Open3D's information matrix ``G^T G`` counts correspondences as independent measurements, so
 its covariance shrinks as 1 / (number of pixels) although neighbouring pixels' depth errors are
@@ -15,16 +15,18 @@ far from independent, and it says nothing about how well the frames actually fit
 covariance is the cluster-robust ("sandwich", Huber-White) estimate of the point-to-plane
 alignment at its answer:
 
-    Cov(xi) = H^-1 B H^-1,  H = sum_i J_i^T J_i,  B = G / (G - 1) sum_g s_g s_g^T,  s_g = sum_{i in g} J_i^T r_i
+    Cov(xi) = A^-1 B A^-T,  A = sum_i w_i J_i G_i^T,  B = G / (G - 1) sum_g s_g s_g^T,  s_g = sum_{i in g} w_i J_i r_i
 
 over the inlier correspondences i (a source pixel's point q_i moved by the transformation,
 against the target surface m_i, n_i where it projects), r_i = n_i . (q_i - m_i) their
-point-to-plane residuals and J_i = [q_i x n_i, n_i] (the residual's derivative with respect to
+point-to-plane residuals, J_i = [q_i x n_i, n_i] (the residual's derivative with respect to
 a perturbation exp(xi) X, [rotation, translation], in the target camera's frame: the frame of
-the pose graph's edge residual, see covariance.py). The clusters g are tiles of the source
-image (a fixed grid, so the estimate does not depend on the processing resolution): residuals
-that are correlated within a tile (smooth depth-sensor errors, calibration, blur) count as one
-measurement per tile, and a misfit (a wrong registration) inflates B and the covariance.
+the pose graph's edge residual, see covariance.py) and G_i the same with m_i following the
+interpolated surface. The clusters g are tiles of the source image (a fixed grid, so the
+estimate does not depend on the processing resolution): residuals that are correlated within a
+tile (smooth depth-sensor errors, calibration, blur) count as one measurement per tile, and a
+misfit (a wrong registration) inflates B and the covariance. Pixels are sampled on a fixed
+stride, so the cost scales with the image.
 """
 
 from __future__ import annotations
@@ -39,29 +41,35 @@ from ..camera import backproject, rotation_matrix
 from ..targets.noise import SensorNoise
 
 TILES = (16, 12)  # columns x rows of the source image's clusters
-MAX_POINTS = 10_000  # pixels sampled per image (a regular grid)
+SAMPLE_STRIDE = 5  # every 5th pixel of every 5th row is a sample: 12,288 at 640x480, 3,072 at 320x240
 MIN_INLIERS = 200
-SENSOR = SensorNoise()  # the random depth noise that weighs each residual
+SENSOR = SensorNoise()  # the random depth noise that weighs each point-to-plane residual
 RESIDUAL_INFLATION = 1.3
 """The sandwich covariance's standard deviations times this: the sub-pixel association leaves a
 bias that no residual shows."""
 JUMP = 0.05  # neighbouring depths further apart than this fraction of the depth: a discontinuity
+STOP_FRACTION = 0.1  # refine stops when a step is below this fraction of the answer's standard deviation
+MAX_RATIO = 0.8  # steps are extrapolated (refine) when each is 0 to this fraction of the one before
 
 
 @dataclasses.dataclass(frozen=True)
 class Fit:
-    """How a transformation aligns two depth images.
+    """How a transformation aligns two frames.
 
+    transformation: (4, 4) source camera -> target camera that the fit is of;
     overlap: fraction of the source's valid sampled pixels with an inlier correspondence;
     residual_rms: RMS point-to-plane residual of the inliers (m); inliers: their number;
     covariance: (6, 6) sandwich covariance of the transformation ([rotation, translation],
     left perturbation in the target camera frame), infinite diagonal when degenerate.
     """
 
+    transformation: np.ndarray
     overlap: float
     residual_rms: float
     inliers: int
     covariance: np.ndarray
+    bread: np.ndarray = dataclasses.field(repr=False, default=None)
+    """(6, 6) A^-1, the inverse of the Newton matrix (refine's steps)."""
 
     @property
     def usable(self) -> bool:
@@ -74,10 +82,7 @@ def surface_normals(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     n ~ (fx z_u, fy z_v, -(z + (u - cx) z_u + (v - cy) z_v)) (the cross product of the two
     tangents of the back-projected surface)."""
     h, w = depth.shape
-    z_u = np.zeros_like(depth)
-    z_v = np.zeros_like(depth)
-    z_u[:, 1:-1] = (depth[:, 2:] - depth[:, :-2]) / 2
-    z_v[1:-1] = (depth[2:] - depth[:-2]) / 2
+    z_u, z_v = _central_differences(depth)
     valid = depth > 0
     valid[:, 1:-1] &= valid[:, 2:] & valid[:, :-2]
     valid[1:-1] &= valid[2:] & valid[:-2]
@@ -88,6 +93,14 @@ def surface_normals(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     n = np.stack([K[0, 0] * z_u, K[1, 1] * z_v, -(depth + u * z_u + v * z_v)], -1)
     norm = np.sqrt(np.einsum("...i,...i->...", n, n))[..., None]
     return np.where(valid[..., None], n / np.maximum(norm, 1e-12), 0.0)
+
+
+def _central_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """d image / du and d image / dv (H, W) by central differences, zero on the border."""
+    d_u, d_v = np.zeros_like(image), np.zeros_like(image)
+    d_u[:, 1:-1] = (image[:, 2:] - image[:, :-2]) / 2
+    d_v[1:-1] = (image[2:] - image[:-2]) / 2
+    return d_u, d_v
 
 
 def point_image(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -101,12 +114,10 @@ def point_image(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True)
 class DepthFrame:
-    """One frame's geometry for point-to-plane alignment: z-depth (H, W) m, its camera-frame
-    points and unit normals (H, W, 3) (point_image, surface_normals), intrinsic K (3, 3) and the
-    depth beyond which it is ignored (m)."""
+    """One frame's geometry for point-to-plane alignment: z-depth (H, W) m, its unit normals
+    (H, W, 3) (surface_normals), intrinsic K (3, 3) and the depth beyond which it is ignored (m)."""
 
     depth: np.ndarray
-    points: np.ndarray
     normals: np.ndarray
     K: np.ndarray
     max_depth: float
@@ -114,16 +125,19 @@ class DepthFrame:
     @classmethod
     def of(cls, depth: np.ndarray, K: np.ndarray, max_depth: float) -> "DepthFrame":
         depth = np.where((depth > 0) & (depth < max_depth), depth, 0.0)
-        return cls(depth, point_image(depth, K), surface_normals(depth, K), np.asarray(K, np.float64), float(max_depth))
+        return cls(depth, surface_normals(depth, K), np.asarray(K, np.float64), float(max_depth))
+
+    @functools.cached_property
+    def points(self) -> np.ndarray:
+        """(H, W, 3) camera-frame points (point_image)."""
+        return point_image(self.depth, self.K)
 
     @functools.cached_property
     def samples(self) -> tuple[np.ndarray, np.ndarray]:
-        """Camera-frame points (M, 3) of a regular grid of at most MAX_POINTS valid pixels, and
-        their flat pixel indices (M,)."""
-        h, w = self.depth.shape
-        stride = max(1, int(np.sqrt(h * w / MAX_POINTS)))
-        mask = np.zeros((h, w), bool)
-        mask[::stride, ::stride] = True
+        """Camera-frame points (M, 3) of the valid pixels on a SAMPLE_STRIDE grid, and their flat
+        pixel indices (M,)."""
+        mask = np.zeros(self.depth.shape, bool)
+        mask[SAMPLE_STRIDE // 2::SAMPLE_STRIDE, SAMPLE_STRIDE // 2::SAMPLE_STRIDE] = True
         return backproject(self.depth, self.K, mask=mask & (self.depth > 0))
 
     def surface_at(self, q: np.ndarray, max_step: float):
@@ -132,8 +146,9 @@ class DepthFrame:
         four neighbouring pixels all have depth and normals, within max_step (m) or JUMP times the
         depth of each other (not across a depth discontinuity); `along` (M, 3), the derivative of
         n . (q - m) with respect to q when m follows the interpolated surface (n itself on a plane
-        that the normals describe exactly); and the (M,) sum of the squared interpolation weights
-        (1 on a pixel, 1/4 between four: how much of one pixel's noise the interpolated depth keeps)."""
+        that the normals describe exactly); the (M,) sum of the squared interpolation weights
+        (1 on a pixel, 1/4 between four: how much of one pixel's noise the interpolated depth
+        keeps)."""
         h, w = self.depth.shape
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
         ok = q[:, 2] > 1e-6
@@ -182,17 +197,20 @@ def _correspondences(points: np.ndarray, target: DepthFrame, transformation: np.
             np.concatenate([np.cross(q, along), along], 1), weight)
 
 
-def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float):
+def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float) -> dict:
     """Point-to-plane residuals of `transformation` both ways: source points against the target
     surface and target points against the source surface (the two snap to pixels in opposite
-    directions, so their sub-pixel biases cancel). Returns r (K,), J (K, 6), G (K, 6), weights (K,)
-    and each residual's tile of the image it was sampled in (K,), all with respect to a
-    perturbation exp(xi) X in the target camera's frame; and the source samples' count and overlap."""
-    out = []
+    directions, so their sub-pixel biases cancel), all with respect to a perturbation exp(xi) X
+    in the target camera's frame. Returns a dict: r (K,), J (K, 6), G (K, 6), w (weights, K),
+    tile (each residual's tile of the image it was sampled in, K); `forward` (the source
+    points' residuals, m), `depth` (their source depths, m) and `samples` (the source samples' count)."""
+    out = {key: [] for key in ("r", "J", "G", "w", "tile")}
     for a, b, T, sign in ((source, target, transformation, 1.0), (target, source, np.linalg.inv(transformation), -1.0)):
         points, flat = a.samples
         keep, r, jac, along, weight = _correspondences(points, b, T, inlier_distance)
-        if sign < 0:  # back into the target frame: d r / d xi = -[p x R a, R a] for p in the target frame
+        if sign > 0:
+            out.update(forward=r, depth=points[keep, 2], samples=len(points))
+        else:  # back into the target frame: d r / d xi = -[p x R a, R a] for p in the target frame
             R = transformation[:3, :3]
             p = points[keep]
             nrm, alg = jac[:, 3:] @ R.T, along[:, 3:] @ R.T
@@ -200,30 +218,39 @@ def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarra
             along = -np.concatenate([np.cross(p, alg), alg], 1)
         h, w = a.depth.shape
         v, u = np.divmod(flat[keep], w)
-        out.append((r, jac, along, weight, (v * TILES[1] // h) * TILES[0] + u * TILES[0] // w, len(points),
-                    points[keep, 2]))
-    return out
+        for key, value in zip(("r", "J", "G", "w", "tile"),
+                              (r, jac, along, weight, (v * TILES[1] // h) * TILES[0] + u * TILES[0] // w)):
+            out[key].append(value)
+    return {key: np.concatenate(value) if isinstance(value, list) else value for key, value in out.items()}
 
 
 def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
-           iterations: int = 6, tolerance: float = 1e-5) -> np.ndarray:
+           misregistration_rad: float = 0.0, iterations: int = 6) -> Fit:
     """`transformation` (4, 4, source camera -> target camera) refined by Newton steps of the
     weighted point-to-plane alignment both ways with sub-pixel association (the root of
-    sum_i w_i J_i r_i = 0), until a step is below `tolerance` (rad / m)."""
+    sum_i w_i J_i r_i = 0); stops before a step below STOP_FRACTION of the answer's own standard deviation on every axis.
+    Returns the :class:`Fit` of the answer (iterations=0: of `transformation` itself, see :func:`fit`).
+
+    On real depth the Newton matrix overstates the curvature (the slopes of the interpolated
+    surface carry the pixels' noise), so successive steps point the same way, each a fraction rho
+    of the one before; a step is then lengthened by 1 / (1 - rho) (Aitken's extrapolation of the
+    geometric series), which reaches the root in about half the iterations."""
     T = np.asarray(transformation, np.float64).copy()
-    for _ in range(iterations):
-        parts = _residuals(source, target, T, inlier_distance)
-        r, jac, along, weight = (np.concatenate([p[k] for p in parts]) for k in range(4))
-        if len(r) < 2 * MIN_INLIERS:
+    previous = None
+    for k in range(iterations + 1):
+        res = _residuals(source, target, T, inlier_distance)
+        result = _fit(T, res, misregistration_rad)
+        if k == iterations or not result.usable:
             break
-        try:
-            step = -np.linalg.solve(jac.T @ (along * weight[:, None]), jac.T @ (weight * r))
-        except np.linalg.LinAlgError:
+        step = -result.bread @ (res["J"].T @ (res["w"] * res["r"]))
+        if np.all(np.abs(step) < STOP_FRACTION * np.sqrt(np.diag(result.covariance))):
             break
+        if previous is not None:
+            rho = float(step @ previous / (previous @ previous))
+            step = step / (1 - rho) if 0 < rho < MAX_RATIO else step
         T = _exp(step) @ T
-        if np.abs(step).max() < tolerance:
-            break
-    return T
+        previous = step
+    return result
 
 
 def _exp(xi: np.ndarray) -> np.ndarray:
@@ -236,7 +263,13 @@ def _exp(xi: np.ndarray) -> np.ndarray:
 
 def fit(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
         misregistration_rad: float = 0.0) -> Fit:
-    """The :class:`Fit` of `transformation` (4, 4, source camera -> target camera) between two frames.
+    """The :class:`Fit` of `transformation` (4, 4, source camera -> target camera) between two
+    frames, as it is (:func:`refine` without a step)."""
+    return refine(source, target, transformation, inlier_distance, misregistration_rad, iterations=0)
+
+
+def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float) -> Fit:
+    """The Fit of `transformation` from its residuals (:func:`_residuals`).
 
     Its covariance is RESIDUAL_INFLATION^2 times the sandwich estimate of the root of
     sum_i w_i J_i r_i = 0 (what :func:`refine` solves), A^-1 B A^-T with A = sum_i w_i J_i G_i^T
@@ -244,22 +277,21 @@ def fit(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inli
     take the noisy normals for the surface's slope), plus the misregistration floor: rotation
     std `misregistration_rad` about each axis and translation std that angle times the median
     inlier depth (what a real sensor's calibration and colour/depth timing leave and no residual shows)."""
-    parts = _residuals(source, target, transformation, inlier_distance)
-    forward = parts[0]
-    overlap = len(forward[0]) / max(forward[5], 1)
-    r, jac, along, weight, tile = (np.concatenate([p[k] for p in parts]) for k in range(5))
-    if len(forward[0]) < MIN_INLIERS:
-        return Fit(overlap, np.inf, len(forward[0]), np.full((6, 6), np.inf))
-    scores = np.zeros((TILES[0] * TILES[1], 6))
-    np.add.at(scores, tile, jac * (weight * r)[:, None])
-    used = np.unique(tile)
-    meat = scores[used].T @ scores[used] * len(used) / max(len(used) - 1, 1)
-    rms = float(np.sqrt(np.mean(forward[0]**2)))
+    inliers = len(res["forward"])
+    overlap = inliers / max(res["samples"], 1)
+    failed = np.full((6, 6), np.inf)
+    if inliers < MIN_INLIERS:
+        return Fit(transformation, overlap, np.inf, inliers, failed, failed)
+    rms = float(np.sqrt(np.mean(res["forward"]**2)))
+    terms = res["J"] * (res["w"] * res["r"])[:, None]
+    used, tile = np.unique(res["tile"], return_inverse=True)
+    scores = np.stack([np.bincount(tile, terms[:, j], len(used)) for j in range(6)], 1)
+    meat = scores.T @ scores * len(used) / max(len(used) - 1, 1)
     try:
-        bread = np.linalg.inv(jac.T @ (along * weight[:, None]))
+        bread = np.linalg.inv(res["J"].T @ (res["G"] * res["w"][:, None]))
     except np.linalg.LinAlgError:
-        return Fit(overlap, rms, len(forward[0]), np.full((6, 6), np.inf))
+        return Fit(transformation, overlap, rms, inliers, failed, failed)
     covariance = RESIDUAL_INFLATION**2 * (bread @ meat @ bread.T)
-    depth = float(np.median(forward[6]))
+    depth = float(np.median(res["depth"]))
     covariance += np.diag([misregistration_rad**2] * 3 + [(misregistration_rad * depth) ** 2] * 3)
-    return Fit(overlap, rms, len(forward[0]), 0.5 * (covariance + covariance.T))
+    return Fit(transformation, overlap, rms, inliers, 0.5 * (covariance + covariance.T), bread)
