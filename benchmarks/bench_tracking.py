@@ -56,7 +56,7 @@ REAL = {
 }
 EVERY10 = DATA / "7scenes_redkitchen" / "every10th_0-990"
 OUT = Path(__file__).resolve().parent / "results"
-PREVIOUS = "4dc4fa7"  # the tracker before residual covariances and recovery (point_noise_m = 2)
+PREVIOUS = "4dc4fa7"  # the tracker of the release e7fdb54 (4dc4fa7 only restructured it): point_noise_m = 2
 WRONG_NEES = float(chi2.ppf(0.99, 6))  # a frame's 6-dof NEES above this: its covariance does not cover its error
 
 PREVIOUS_SCRIPT = """
@@ -79,7 +79,8 @@ with warnings.catch_warnings():
     traj = track(seq, loop_closure=args["loops"], progress=False)
     seconds = time.perf_counter() - t0
 np.savez(args["out"], poses=traj.poses, covariances=traj.covariances)
-print("RESULT " + json.dumps({"seconds": seconds, "failed_frames": traj.failed_frames}))
+print("RESULT " + json.dumps({"seconds": seconds, "failed_frames": traj.failed_frames,
+                             "loops_kept": sum(e.kind == "loop" and e.success for e in traj.edges)}))
 """
 
 
@@ -131,7 +132,7 @@ def real_section(previous: PreviousRelease, scales) -> dict:
                                                         "out": str(previous.tmp / "traj.npz")})
                 saved = np.load(previous.tmp / "traj.npz")
                 out[key]["previous"] = {"ms_per_frame": round(1000 * before["seconds"] / len(seq), 1),
-                                        "failed": before["failed_frames"],
+                                        "failed": before["failed_frames"], "loops_kept": before["loops_kept"],
                                         **scores(saved["poses"], saved["covariances"], seq.gt_poses, 0.03)}
                 print(key, {w: {k: out[key][w][k] for k in ("ate_mm", "nees_per_dof", "z_std", "ms_per_frame")}
                             for w in ("new", "previous")}, flush=True)
@@ -215,12 +216,14 @@ def downstream_section(previous: PreviousRelease, cases) -> dict:
 
 def markdown(report: dict) -> str:
     lines = [f"# Tracking ({report['total_minutes']} min, `python benchmarks/bench_tracking.py`)", "",
-             "## Real sequences: new tracker / previous release (`point_noise_m = 2`)", "",
-             "| sequence, setting | ATE mm | ms/frame | NEES/dof (band) | z std | within 1σ / 2σ | "
-             "recovered / flagged / failed |", "| --- | --- | --- | --- | --- | --- | --- |"]
+             f"## Real sequences: this tracker / the previous release ({report['previous']}, e7fdb54's tracker; "
+             "`point_noise_m = 2`), run one after the other", "",
+             "| sequence, setting | ATE mm | ms/frame (ratio) | loops kept | NEES/dof (band) | z std | within 1σ / 2σ | "
+             "recovered / flagged / failed |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for key, r in report["real"].items():
         n, p = r["new"], r["previous"]
-        lines.append(f"| {key} | {n['ate_mm']} / {p['ate_mm']} | {n['ms_per_frame']:.0f} / {p['ms_per_frame']:.0f} | "
+        lines.append(f"| {key} | {n['ate_mm']} / {p['ate_mm']} | {n['ms_per_frame']:.0f} / {p['ms_per_frame']:.0f} "
+                     f"({n['ms_per_frame'] / p['ms_per_frame']:.2f}) | {n['loops_kept']} / {p.get('loops_kept', '-')} | "
                      f"{n['nees_per_dof']} / {p['nees_per_dof']} ({n['nees_band'][0]:.2f}-{n['nees_band'][1]:.2f}) | "
                      f"{n['z_std']} / {p['z_std']} | {n['within_1']:.2f}, {n['within_2']:.2f} / "
                      f"{p['within_1']:.2f}, {p['within_2']:.2f} | "

@@ -249,7 +249,7 @@ def cmd_evaluate(args) -> int:
     config_path = folder / RUN_CONFIG
     saved = read_run_config(folder, "evaluate") if config_path.is_file() else {}
     recorded = args.data is None
-    if recorded and "data" not in saved and recon.frames is not None:  # saved from Python: its own frames
+    if recorded and recon.frames is not None:  # the frames it was built from, as it was built from them
         seq = recon.frames
     else:
         if recorded:

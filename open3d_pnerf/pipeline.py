@@ -344,9 +344,11 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
     (m), truncation 4 voxels. weight_threshold: the TSDF keeps voxels seen by more training
     frames than this; None = the exported mesh's own threshold (export.mesh_min_views - 0.5),
     so both keep the same surfaces; Open3D's default (3) is a second, labelled row. Every
-    method is rendered at the held-out poses at the training resolution. An image-only
-    sequence (no depth images, e.g. an LLFF folder) has no TSDF to fuse: the model is
-    scored alone (colour metrics). See :func:`open3d_pnerf.comparison.compare`.
+    method is rendered at the held-out poses at the training resolution, against the frames the
+    model was built from (``reconstruction.frames``: tracked frames have their depth moved into
+    their colour cameras, see :func:`resolve_poses`). An image-only sequence (no depth images, e.g.
+    an LLFF folder) has no TSDF to fuse: the model is scored alone (colour metrics). See
+    :func:`open3d_pnerf.comparison.compare`.
     """
     if not isinstance(sequence, RGBDSequence):
         raise InputError(f"sequence must be an RGBDSequence, got {type(sequence).__name__}")
@@ -355,7 +357,8 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
         reconstruction = reconstruct(sequence, config, poses=poses, covariances=covariances)
     elif not isinstance(reconstruction, Reconstruction):
         raise InputError(f"reconstruction must be a Reconstruction, got {type(reconstruction).__name__}")
-    return compare(reconstruction, sequence, reference, figure_frames, voxel_size, weight_threshold, progress)
+    frames = sequence if reconstruction.frames is None else reconstruction.frames
+    return compare(reconstruction, frames, reference, figure_frames, voxel_size, weight_threshold, progress)
 
 
 # -- a run folder (the command line's) -------------------------------------------------------------
@@ -375,7 +378,7 @@ def reconstruct_folder(sequence: RGBDSequence, config: ReconstructionConfig, out
         recon = run(sequence, config, poses, covariances, out / "checkpoints", resume, dist)
     if not dist.is_main:
         return None
-    return write_outputs(recon, sequence, out, config.progress)
+    return write_outputs(recon, sequence if recon.frames is None else recon.frames, out, config.progress)
 
 
 def extend_folder(base_dir, sequence: RGBDSequence, out, overrides: dict | None = None, poses=None,

@@ -149,7 +149,7 @@ def test_evaluate_missing_data_is_one_clear_line(run_dir, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(missing) in err[0]
     folder = tmp_path / "copy"
-    shutil.copytree(run_dir, folder, ignore=shutil.ignore_patterns("checkpoints"))
+    shutil.copytree(run_dir, folder, ignore=shutil.ignore_patterns("checkpoints", "frames"))  # frames: its own data
     saved = json.loads((folder / "run_config.json").read_text())
     (folder / "run_config.json").write_text(json.dumps({**saved, "data": str(missing)}))
     assert cli.main(["--quiet", "evaluate", str(folder)]) == cli.EXIT_ERROR
