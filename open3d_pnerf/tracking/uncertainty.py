@@ -25,8 +25,8 @@ the pose graph's edge residual, see covariance.py) and G_i the same with m_i fol
 interpolated surface. The clusters g are tiles of the source image (a fixed grid, so the
 estimate does not depend on the processing resolution): residuals that are correlated within a
 tile (smooth depth-sensor errors, calibration, blur) count as one measurement per tile, and a
-misfit (a wrong registration) inflates B and the covariance. Pixels are sampled on a fixed
-stride, so the cost scales with the image.
+misfit (a wrong registration) inflates B and the covariance. About SAMPLES pixels are sampled
+on a regular grid, whatever the image's size.
 """
 
 from __future__ import annotations
@@ -41,7 +41,13 @@ from ..camera import backproject, rotation_matrix
 from ..targets.noise import SensorNoise
 
 TILES = (16, 12)  # columns x rows of the source image's clusters
-SAMPLE_STRIDE = 5  # every 5th pixel of every 5th row is a sample: 12,288 at 640x480, 3,072 at 320x240
+SAMPLES = 10_000
+"""At most about this many pixels of each image are samples, on a regular grid: stride 6 at 640x480
+and 3 at 320x240 (8,560 samples), 2 at 160x120 (4,800); the cost of a refinement is then about
+the same at any resolution from 320x240 up (the previous grid took 19,200 at 320x240). Fewer
+samples were tried (a stride of 4 or 5 at 320x240): the covariances no longer held on the
+synthetic room's noise draws, and at 3,072 samples one frame of its 100-frame seed 3 went 1.7 cm
+wrong and took 56 frames outside their covariances (benchmarks/README.md)."""
 MIN_INLIERS = 200
 SENSOR = SensorNoise()  # the random depth noise that weighs each point-to-plane residual
 RESIDUAL_INFLATION = 1.3
@@ -134,10 +140,11 @@ class DepthFrame:
 
     @functools.cached_property
     def samples(self) -> tuple[np.ndarray, np.ndarray]:
-        """Camera-frame points (M, 3) of the valid pixels on a SAMPLE_STRIDE grid, and their flat
-        pixel indices (M,)."""
+        """Camera-frame points (M, 3) of the valid pixels on a regular grid of about SAMPLES pixels,
+        and their flat pixel indices (M,)."""
+        stride = max(1, int(np.ceil(np.sqrt(self.depth.size / SAMPLES))))
         mask = np.zeros(self.depth.shape, bool)
-        mask[SAMPLE_STRIDE // 2::SAMPLE_STRIDE, SAMPLE_STRIDE // 2::SAMPLE_STRIDE] = True
+        mask[stride // 2::stride, stride // 2::stride] = True
         return backproject(self.depth, self.K, mask=mask & (self.depth > 0))
 
     def surface_at(self, q: np.ndarray, max_step: float):
