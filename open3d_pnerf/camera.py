@@ -161,6 +161,21 @@ def rotation_vector(matrix) -> np.ndarray:
         return So3.from_matrix(R.reshape(-1, 3, 3)).log().reshape(*R.shape[:-2], 3).numpy()
 
 
+def twist_matrix(xi: np.ndarray) -> np.ndarray:
+    """(4, 4) rigid transform of a small twist xi (6,) [rotation rad, translation m]: the rotation
+    exact, the translation to first order (the inverse of :func:`matrix_twist`)."""
+    T = np.eye(4)
+    T[:3, :3] = rotation_matrix(xi[:3])
+    T[:3, 3] = xi[3:]
+    return T
+
+
+def matrix_twist(T: np.ndarray) -> np.ndarray:
+    """(6,) twist [rotation vector rad, translation m] of a near-identity 4x4 rigid transform (the
+    translation to first order; the inverse of :func:`twist_matrix`)."""
+    return np.concatenate([rotation_vector(T[:3, :3]), T[:3, 3]])
+
+
 def quaternion_matrix(wxyz) -> np.ndarray:
     """(..., 3, 3) rotation matrices of quaternions (..., 4) (w, x, y, z), normalised first."""
     import torch

@@ -62,13 +62,18 @@ def pose_graph_hessian(pose_graph: o3d.pipelines.registration.PoseGraph,
                 rows.append(a)
                 cols.append(b)
                 blocks.append(jac[a].T @ info @ jac[b])
+    return block_matrix(rows, cols, blocks, n)
+
+
+def block_matrix(rows: list[int], cols: list[int], blocks: list[np.ndarray], n: int) -> sp.csc_matrix:
+    """(6n, 6n) sparse matrix, the sum of the (6, 6) `blocks` placed at block row rows[k], block
+    column cols[k] (several blocks at one place add up)."""
     if not blocks:
         return sp.csc_matrix((6 * n, 6 * n))
-    # Expand the 6x6 blocks to element triplets; duplicates are summed by the COO -> CSC step.
     block_r, block_c = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
     r = (6 * np.asarray(rows)[:, None, None] + block_r).ravel()
     c = (6 * np.asarray(cols)[:, None, None] + block_c).ravel()
-    return sp.coo_matrix((np.stack(blocks).ravel(), (r, c)), shape=(6 * n, 6 * n)).tocsc()
+    return sp.coo_matrix((np.stack(blocks).ravel(), (r, c)), shape=(6 * n, 6 * n)).tocsc()  # COO -> CSC sums
 
 
 def pose_graph_covariances(

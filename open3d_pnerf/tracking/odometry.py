@@ -201,16 +201,15 @@ class FrameRegistration:
                 src.rgbd, tgt.rgbd, self.intrinsic, o3d.core.Tensor(init), depth_scale=1.0,
                 depth_max=self.max_depth, criteria_list=options.criteria(), method=_METHODS[options.method],
             )
-            transformation = result.transformation.numpy().astype(np.float64)
-            if not np.isfinite(transformation).all():
+            found = result.transformation.numpy().astype(np.float64)
+            if not np.isfinite(found).all():
                 raise RuntimeError("non-finite transformation")
         except RuntimeError as exc:  # Open3D raises on singular systems and empty images
             return PairResult(
                 **failed, fitness=0.0, inlier_rmse=np.inf, overlap=0.0,
                 message=f"Open3D odometry failed ({str(exc).strip()})",
             )
-        quality = refine(src.geometry, tgt.geometry, transformation, options.inlier_distance_m,
-                         options.misregistration_rad)
+        quality = refine(src.geometry, tgt.geometry, found, options.inlier_distance_m, options.misregistration_rad)
         transformation = quality.transformation
         moved_m, turned_deg = motion(np.linalg.inv(init if prior is None else prior) @ transformation)
         message = ""
@@ -234,7 +233,7 @@ class FrameRegistration:
             inliers=quality.inliers,
             covariance=quality.covariance,
             init=init_name,
-            odometry_transformation=result.transformation.numpy().astype(np.float64),
+            odometry_transformation=found,
         )
 
     def global_guess(self, source: int, target: int) -> np.ndarray | None:

@@ -9,7 +9,7 @@ import numpy as np
 import open3d as o3d
 from tqdm.auto import tqdm
 
-from ..camera import adjoint, rotation_vector
+from ..camera import adjoint, matrix_twist
 from ..data.sequence import RGBDSequence, check_sequence, evenly_spaced
 from ..errors import InputError, TrackingError
 from ..settings import FLAG, Settings, setting
@@ -401,8 +401,7 @@ class _Run:
             moved_m, turned_deg = motion(np.linalg.inv(pose) @ other)
             if moved_m < self.options.inlier_distance_m and turned_deg < 1.0:
                 continue
-            step = np.linalg.inv(other) @ self.poses[source] @ np.linalg.inv(transformation)  # exp(xi)
-            xi = np.concatenate([rotation_vector(step[:3, :3]), step[:3, 3]])
+            xi = matrix_twist(np.linalg.inv(other) @ self.poses[source] @ np.linalg.inv(transformation))  # exp(xi)
             extra += np.outer(xi, xi)
         return extra
 

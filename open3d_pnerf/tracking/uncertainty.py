@@ -37,7 +37,7 @@ import functools
 import numpy as np
 
 
-from ..camera import backproject, rotation_matrix
+from ..camera import backproject, twist_matrix
 from ..targets.noise import SensorNoise
 
 TILES = (16, 12)  # columns x rows of the source image's clusters
@@ -255,17 +255,9 @@ def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, i
         if previous is not None:
             rho = float(step @ previous / (previous @ previous))
             step = step / (1 - rho) if 0 < rho < MAX_RATIO else step
-        T = _exp(step) @ T
+        T = twist_matrix(step) @ T
         previous = step
     return result
-
-
-def _exp(xi: np.ndarray) -> np.ndarray:
-    """(4, 4) rigid transform of a small twist [rotation, translation] (rotation exact, translation first order)."""
-    T = np.eye(4)
-    T[:3, :3] = rotation_matrix(xi[:3])
-    T[:3, 3] = xi[3:]
-    return T
 
 
 def fit(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
