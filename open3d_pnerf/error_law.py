@@ -52,6 +52,29 @@ def sigma_multiple(probability: float, dof: float = np.inf) -> float:
     return float(law.ppf((1 + probability) / 2) / one)
 
 
+def standard_deviation(sigma, dof: float = np.inf) -> np.ndarray:
+    """The standard deviation (m) of the law with 1-sigma equivalent `sigma` (m, any shape) and `dof`
+    degrees of freedom: sigma for a Gaussian, sigma * sqrt(dof / (dof - 2)) / t_dof(84.1%) for a
+    Student-t, inf where the variance does not exist (dof <= 2)."""
+    if np.isinf(dof):
+        return np.asarray(sigma, np.float64)
+    if dof <= 2:
+        return np.full(np.shape(sigma), np.inf)
+    _, one = _standard_law(dof)
+    return np.asarray(sigma, np.float64) * np.sqrt(dof / (dof - 2)) / one
+
+
+def standardized_multiple(probability: float, dof: float = np.inf) -> float:
+    """Half-width, in standard deviations, of the central interval that holds `probability` of the
+    law with `dof` > 2 degrees of freedom (inf: a Gaussian, 3.0 for 0.9973)."""
+    if not 0 < probability < 1:
+        raise InputError(f"probability must be in (0, 1), got {probability!r}")
+    if dof <= 2:
+        raise InputError(f"a law with {dof} degrees of freedom has no standard deviation (needs > 2)")
+    law, _ = _standard_law(dof)
+    return float(law.ppf((1 + probability) / 2) * (1 if np.isinf(dof) else np.sqrt((dof - 2) / dof)))
+
+
 def depth_nll(err: np.ndarray, sigma: np.ndarray, dof: float = np.inf) -> np.ndarray:
     """Negative log-likelihood (nats) of depth errors `err` (m) under the law of
     1-sigma-equivalent `sigma` (m) and `dof` degrees of freedom; arrays of one shape, or

@@ -231,7 +231,8 @@ def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportC
         # the model learned from this sensor, so its systematic error is common to both: fuse the
         # independent (random) parts, then add the common part back; max_point_std applies to the
         # model's depth before the fusion
-        fused = fuse_render_with_sensor(r, z, noise.sigma(z), cfg.min_opacity, cfg.max_point_std)
+        fused = fuse_render_with_sensor(r, z, noise.sigma(z), cfg.min_opacity, cfg.max_point_std,
+                                        recon.depth_sigma_dof)
         common = np.where(z > 0, noise.systematic_var(fused["depth"]), 0)
         fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
         renders[k] = fused

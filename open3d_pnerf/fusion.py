@@ -1,12 +1,14 @@
-"""Per-pixel fusion of two Gaussian depth estimates: the sensor's measured depth and the
-model's rendered depth, each with its sigma, before surfaces are extracted (export).
+"""Per-pixel fusion of two depth estimates: the sensor's measured depth and the model's rendered
+depth, each with its error law (a 1-sigma equivalent and degrees of freedom: a Gaussian or the
+model's Student-t, :mod:`open3d_pnerf.error_law`), before surfaces are extracted (export).
 
-Where both exist and agree, the product of the two Gaussians (inverse-variance weighting)
-keeps the more certain one's accuracy and narrows the sigma; where only one exists (the
-sensor saw nothing there, or the model is not confident) that one is kept as it is; where
-they disagree beyond what their sigmas allow (an outlier, a floater, an occlusion edge one of
-them blurs), averaging would put the surface where neither saw it, so the more certain one
-is kept.
+Where both exist and agree, they are weighted by their inverse variances (the best linear
+combination; a Student-t's variance is wider than its 1-sigma equivalent, and an estimate whose
+variance does not exist, dof <= 2, gets no weight) and the fused sigma narrows; where only one
+exists (the sensor saw nothing there, or the model is not confident) that one is kept as it is;
+where they disagree beyond what their laws allow (an outlier, a floater, an occlusion edge one
+of them blurs), averaging would put the surface where neither saw it, so the more certain one
+is kept. The gate rejects at most `reject` of consistent pairs, whatever the two laws' tails.
 """
 
 from __future__ import annotations
@@ -14,30 +16,48 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .error_law import standard_deviation, standardized_multiple
 from .errors import InputError
 
+GATE_REJECT = 0.0027
+"""Share of consistent pairs the fusion's gate may take for disagreeing: a Gaussian pair's 3 sigma."""
 
-def fuse_gaussians(mean_a, sigma_a, mean_b, sigma_b, gate: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse N(mean_a, sigma_a^2) and N(mean_b, sigma_b^2) element by element.
 
-    All inputs broadcast to one shape (any units, the same for all). An estimate is missing
-    where its mean is not finite or its sigma is not a finite number > 0. Returns (mean,
-    sigma): mean = (a / sa^2 + b / sb^2) / (1 / sa^2 + 1 / sb^2) and sigma = (1 / sa^2 +
-    1 / sb^2)^-1/2 where both exist and |a - b| <= gate * sqrt(sa^2 + sb^2); the estimate with
-    the smaller sigma where both exist but disagree by more; the one that exists where only one
-    does; NaN (both) where neither does.
+def consistent(mean_a, sd_a, mean_b, sd_b, dof: float = np.inf, reject: float = GATE_REJECT) -> np.ndarray:
+    """Where two estimates agree: |a - b| <= k * sqrt(sd_a^2 + sd_b^2), their standard deviations
+    (inf: always agrees), k the standardized multiple of the heavier-tailed law (`dof`, the smaller
+    of the two; inf: both Gaussian) that holds 1 - `reject`. The difference of a Student-t and a
+    Gaussian error has lighter tails than the Student-t alone, so at most `reject` of consistent
+    pairs fail (tests/test_fusion.py draws them). All arrays broadcast to one shape."""
+    if not 0 < reject < 1:
+        raise InputError(f"reject must be in (0, 1) (a share of consistent pairs), got {reject!r}")
+    k = standardized_multiple(1 - reject, dof) if dof > 2 else np.inf
+    with np.errstate(invalid="ignore"):
+        return np.abs(np.asarray(mean_a) - mean_b) <= k * np.hypot(sd_a, sd_b)
+
+
+def fuse_depths(mean_a, sigma_a, mean_b, sigma_b, dof_a: float = np.inf, dof_b: float = np.inf,
+                reject: float = GATE_REJECT) -> tuple[np.ndarray, np.ndarray]:
+    """Fuse two depth estimates element by element.
+
+    Estimate a: means `mean_a`, 1-sigma equivalents `sigma_a` of a law with `dof_a` degrees of
+    freedom (inf: a Gaussian); b likewise. All broadcast to one shape (any units, the same for
+    all). An estimate is missing where its mean is not finite or its sigma is not a finite number
+    > 0. Returns (mean, sigma): where both exist and are :func:`consistent`, the inverse-variance
+    weighted mean and its standard deviation (1 / wa + 1 / wb)^-1/2 (w = 1 / sd^2, 0 for an infinite
+    variance); the estimate with the smaller standard deviation where both exist but disagree; the
+    one that exists where only one does (with its own sigma); NaN (both) where neither does.
     """
-    if not gate > 0:
-        raise InputError(f"gate must be > 0 (sigmas of disagreement), got {gate!r}")
     a, sa, b, sb = np.broadcast_arrays(*(np.asarray(x, np.float64) for x in (mean_a, sigma_a, mean_b, sigma_b)))
     has_a = np.isfinite(a) & np.isfinite(sa) & (sa > 0)
     has_b = np.isfinite(b) & np.isfinite(sb) & (sb > 0)
+    da, db = standard_deviation(np.where(has_a, sa, 1.0), dof_a), standard_deviation(np.where(has_b, sb, 1.0), dof_b)
     with np.errstate(divide="ignore", invalid="ignore"):
-        wa, wb = np.where(has_a, 1 / sa**2, 0.0), np.where(has_b, 1 / sb**2, 0.0)
-        fused = (np.where(has_a, a, 0) * wa + np.where(has_b, b, 0) * wb) / (wa + wb)
+        wa, wb = np.where(has_a, 1 / da**2, 0.0), np.where(has_b, 1 / db**2, 0.0)
+        fused = (np.where(wa > 0, a, 0) * wa + np.where(wb > 0, b, 0) * wb) / (wa + wb)
         fused_sigma = 1 / np.sqrt(wa + wb)
-        agree = np.abs(a - b) <= gate * np.sqrt(sa**2 + sb**2)
-    a_better = sa <= sb
+    agree = consistent(a, da, b, db, min(dof_a, dof_b), reject)
+    a_better = da <= db
     both = has_a & has_b
     take_a = (has_a & ~has_b) | (both & ~agree & a_better)
     take_b = (has_b & ~has_a) | (both & ~agree & ~a_better)
@@ -47,13 +67,14 @@ def fuse_gaussians(mean_a, sigma_a, mean_b, sigma_b, gate: float = 3.0) -> tuple
 
 
 def fuse_render_with_sensor(render: dict, depth: np.ndarray, depth_sigma: np.ndarray, min_opacity: float,
-                            max_std: float) -> dict:
-    """A render's depth fused per pixel with the sensor's (:func:`fuse_gaussians`).
+                            max_std: float, dof: float = np.inf) -> dict:
+    """A render's depth fused per pixel with the sensor's (:func:`fuse_depths`).
 
     render: color (h, w, 3), depth and depth_std (h, w) z metres, opacity (h, w) (as
-    :meth:`Reconstruction.render` returns); its depth counts where opacity >= min_opacity
-    and depth_std <= max_std. depth: (H, W) sensor z-depth metres (0 = none); depth_sigma:
-    its (H, W) sigma (m). A render smaller than the sensor's image (the same camera at a
+    :meth:`Reconstruction.render` returns; depth_std the 1-sigma equivalent of a law with `dof`
+    degrees of freedom, the reconstruction's depth_sigma_dof); its depth counts where opacity >=
+    min_opacity and depth_std <= max_std. depth: (H, W) sensor z-depth metres (0 = none); depth_sigma:
+    its (H, W) Gaussian sigma (m). A render smaller than the sensor's image (the same camera at a
     lower resolution, h <= H and w <= W) is first brought to (H, W) by :func:`nearest_upsample`:
     the sensor keeps its resolution and the model fills its holes. Returns a new dict at
     (H, W) with the fused depth and depth_std (0 and inf where neither has one) and opacity
@@ -66,8 +87,8 @@ def fuse_render_with_sensor(render: dict, depth: np.ndarray, depth_sigma: np.nda
     render = {k: nearest_upsample(v, (H, W)) if isinstance(v, np.ndarray) and v.shape[:2] == (h, w) else v
               for k, v in render.items()}
     confident = (render["opacity"] >= min_opacity) & (render["depth_std"] <= max_std)
-    mean, sigma = fuse_gaussians(np.where(confident, render["depth"], np.nan), render["depth_std"],
-                                 np.where(depth > 0, depth, np.nan), depth_sigma)
+    mean, sigma = fuse_depths(np.where(confident, render["depth"], np.nan), render["depth_std"],
+                              np.where(depth > 0, depth, np.nan), depth_sigma, dof_a=dof)
     has = np.isfinite(mean)
     return {**render, "depth": np.where(has, mean, 0).astype(np.float32),
             "depth_std": np.where(has, sigma, np.inf).astype(np.float32), "opacity": has.astype(np.float32)}

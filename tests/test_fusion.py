@@ -1,31 +1,35 @@
-"""Per-pixel fusion of the sensor's and the model's depth Gaussians (open3d_pnerf.fusion)."""
+"""Per-pixel fusion of the sensor's and the model's depth estimates (open3d_pnerf.fusion)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from open3d_pnerf.errors import InputError
 from open3d_pnerf.camera import pinhole, scale_intrinsic
-from open3d_pnerf.fusion import fuse_gaussians, fuse_render_with_sensor, nearest_upsample
+from open3d_pnerf.error_law import GAUSSIAN_SHARES, standard_deviation, standardized_multiple
+from open3d_pnerf.fusion import GATE_REJECT, consistent, fuse_depths, fuse_render_with_sensor, nearest_upsample
+
+ONE_SIGMA = GAUSSIAN_SHARES[1]
 
 
 def test_two_gaussians_give_the_product_mean_and_sigma():
     # N(1.00, 0.03^2) x N(1.04, 0.04^2): weights 1/9e-4 and 1/16e-4 -> mean 1.0144, sigma 0.024
-    mean, sigma = fuse_gaussians(1.00, 0.03, 1.04, 0.04)
+    mean, sigma = fuse_depths(1.00, 0.03, 1.04, 0.04)
     assert mean == pytest.approx((1.00 / 0.03**2 + 1.04 / 0.04**2) / (1 / 0.03**2 + 1 / 0.04**2))
     assert mean == pytest.approx(1.0144)
     assert sigma == pytest.approx(0.024)
     # equal sigmas: the midpoint, sigma / sqrt(2); the order of the two does not matter
-    m, s = fuse_gaussians([2.0, 3.0], [0.1, 0.1], [2.2, 3.0], [0.1, 0.1])
+    m, s = fuse_depths([2.0, 3.0], [0.1, 0.1], [2.2, 3.0], [0.1, 0.1])
     np.testing.assert_allclose(m, [2.1, 3.0])
     np.testing.assert_allclose(s, [0.1 / np.sqrt(2)] * 2)
-    np.testing.assert_allclose(fuse_gaussians(1.04, 0.04, 1.00, 0.03), fuse_gaussians(1.00, 0.03, 1.04, 0.04))
+    np.testing.assert_allclose(fuse_depths(1.04, 0.04, 1.00, 0.03), fuse_depths(1.00, 0.03, 1.04, 0.04))
 
 
 def test_a_pixel_with_one_source_keeps_it_and_none_gives_nan():
     nan = np.nan
-    mean, sigma = fuse_gaussians([1.5, nan, 1.5, nan, 2.0], [0.02, nan, 0.02, 0.01, 0.0],
+    mean, sigma = fuse_depths([1.5, nan, 1.5, nan, 2.0], [0.02, nan, 0.02, 0.01, 0.0],
                                  [nan, 2.5, 0.0 + nan, nan, 2.1], [0.05, 0.05, 0.05, nan, 0.3])
     np.testing.assert_allclose(mean[:3], [1.5, 2.5, 1.5])
     np.testing.assert_allclose(sigma[:3], [0.02, 0.05, 0.02])
@@ -35,21 +39,64 @@ def test_a_pixel_with_one_source_keeps_it_and_none_gives_nan():
 
 def test_disagreeing_sources_keep_the_more_certain_one():
     # 0.5 m apart with sigmas 0.01 and 0.1: 5 combined sigmas -> not averaged
-    mean, sigma = fuse_gaussians([1.0, 1.0], [0.01, 0.1], [1.5, 1.5], [0.1, 0.01])
+    mean, sigma = fuse_depths([1.0, 1.0], [0.01, 0.1], [1.5, 1.5], [0.1, 0.01])
     np.testing.assert_allclose(mean, [1.0, 1.5])
     np.testing.assert_allclose(sigma, [0.01, 0.01])
     # just inside the gate they are fused
     d = 2.9 * np.hypot(0.01, 0.1)
-    mean, _ = fuse_gaussians(1.0, 0.01, 1.0 + d, 0.1)
+    mean, _ = fuse_depths(1.0, 0.01, 1.0 + d, 0.1)
     assert 1.0 < mean < 1.0 + 0.02 * d
 
 
 def test_maps_broadcast_and_a_bad_gate_is_refused():
-    mean, sigma = fuse_gaussians(np.ones((4, 5)), 0.1, np.full((4, 5), 1.1), np.full((4, 5), 0.1))
+    mean, sigma = fuse_depths(np.ones((4, 5)), 0.1, np.full((4, 5), 1.1), np.full((4, 5), 0.1))
     assert mean.shape == sigma.shape == (4, 5)
     np.testing.assert_allclose(mean, 1.05)
-    with pytest.raises(InputError, match="gate must be > 0"):
-        fuse_gaussians(1.0, 0.1, 1.0, 0.1, gate=0)
+    with pytest.raises(InputError, match="reject must be in"):
+        fuse_depths(1.0, 0.1, 1.0, 0.1, reject=0)
+
+
+def test_a_student_t_estimate_is_weighted_by_its_variance_not_its_1_sigma_equivalent():
+    # a Student-t with 5 dof and 1-sigma equivalent s: its standard deviation (from draws) is wider than s
+    draws = np.random.default_rng(0).standard_t(5, 2_000_000)
+    one = np.quantile(np.abs(draws), ONE_SIGMA)  # the draws' own 1-sigma equivalent
+    assert standard_deviation(1.0, 5) == pytest.approx(np.std(draws) / one, rel=0.01)
+    assert standard_deviation(0.02, np.inf) == 0.02 and np.isinf(standard_deviation(0.02, 1.8))
+    assert standardized_multiple(GAUSSIAN_SHARES[3]) == pytest.approx(3.0)
+    with pytest.raises(InputError, match="no standard deviation"):
+        standardized_multiple(0.99, 2.0)
+    # model 1.00 (t, 5 dof, s = 0.03) and sensor 1.04 (Gaussian 0.03): weights 1 / sd^2, the sensor counts more
+    sd = standard_deviation(0.03, 5)
+    mean, sigma = fuse_depths(1.00, 0.03, 1.04, 0.03, dof_a=5)
+    assert mean == pytest.approx((1.00 / sd**2 + 1.04 / 0.03**2) / (1 / sd**2 + 1 / 0.03**2))
+    assert mean > 1.02 and sigma == pytest.approx((1 / sd**2 + 1 / 0.03**2) ** -0.5)
+
+
+def test_an_estimate_without_a_variance_adds_nothing_where_the_other_exists():
+    # dof 1.8: the variance does not exist, so the sensor is kept (however far the model is) and the model fills holes
+    mean, sigma = fuse_depths([1.0, 1.0, 1.0], [0.01, 0.01, 0.01], [1.02, 3.0, np.nan], [0.02, 0.02, 0.02], dof_a=1.8)
+    np.testing.assert_allclose(mean, [1.02, 3.0, 1.0])
+    np.testing.assert_allclose(sigma, [0.02, 0.02, 0.01])
+
+
+@pytest.mark.parametrize("dof", [2.5, 3.0, 5.0, 10.0, np.inf])
+def test_the_gate_rejects_few_consistent_pairs_whatever_the_tails(dof):
+    """Pairs drawn from their own laws (a Student-t model, a Gaussian sensor, sd ratios 0.1 to 10):
+    the gate takes at most 0.5% of them for disagreeing. Three 1-sigma equivalents summed as if
+    Gaussian (the fusion's former rule) reject 1.6 to 4% of them at 2.5 to 5 dof."""
+    rng, n = np.random.default_rng(1), 400_000
+    for ratio in (0.1, 0.3, 1.0, 3.0, 10.0):
+        s_model, s_sensor = 0.01, 0.01 * ratio
+        t = rng.standard_t(dof, n) / stats.t(dof).ppf((1 + ONE_SIGMA) / 2) if np.isfinite(dof) else rng.normal(size=n)
+        model = 2.0 + t * s_model  # 1-sigma equivalent s_model
+        sensor = 2.0 + rng.normal(0, s_sensor, n)
+        sd_model = standard_deviation(s_model, dof)
+        rejected = ~consistent(model, sd_model, sensor, s_sensor, dof)
+        assert rejected.mean() <= 0.005, (dof, ratio, rejected.mean())
+        if np.isfinite(dof) and dof <= 5 and ratio <= 0.3:
+            assert (np.abs(model - sensor) > 3 * np.hypot(s_model, s_sensor)).mean() > 0.01  # the former rule
+    assert GATE_REJECT < 0.005
+
 
 
 def test_nearest_upsample_takes_the_pixel_whose_centre_is_nearest():
