@@ -133,12 +133,19 @@ def sdf_surface(recon, cloud: o3d.geometry.PointCloud, voxel_size: float) -> o3d
     return mesh
 
 
+SIGMA_PROPERTIES = ("depth_sigma", "quality")
+"""The PLY vertex properties that carry each point's or vertex's sigma (m), the same values under two
+names: ``depth_sigma`` says what it is (Open3D's tensor reader, plyfile, CloudCompare's scalar
+fields), ``quality`` is the one per-vertex scalar MeshLab (and pymeshlab) reads, to colour or
+filter by."""
+
+
 def write_mesh_ply(path, mesh: o3d.geometry.TriangleMesh, sigma: np.ndarray | None = None) -> None:
-    """Write a mesh as binary PLY, atomically. Given `sigma` (V,) (m), each vertex also gets a
-    float property `depth_sigma` beside x, y, z and uchar red, green, blue (Open3D's mesh
-    writers drop extra vertex properties, so this one writes it with plyfile): Open3D's mesh
-    readers, MeshLab and trimesh read the mesh, ``o3d.t.io.read_point_cloud`` and plyfile
-    the per-vertex sigma too."""
+    """Write a mesh as binary PLY, atomically. Given `sigma` (V,) (m), each vertex also gets it as
+    the float properties of :data:`SIGMA_PROPERTIES` beside x, y, z and uchar red, green, blue
+    (Open3D's mesh writers drop extra vertex properties, so this one writes them with plyfile):
+    Open3D's mesh readers, MeshLab and trimesh read the mesh, ``o3d.t.io.read_point_cloud``,
+    plyfile and MeshLab the per-vertex sigma too."""
     if sigma is None:
         atomic_write(path, lambda p: o3d.io.write_triangle_mesh(p, mesh, write_ascii=False))
         return
@@ -149,13 +156,14 @@ def write_mesh_ply(path, mesh: o3d.geometry.TriangleMesh, sigma: np.ndarray | No
     fields = [("x", "f4"), ("y", "f4"), ("z", "f4")]
     if mesh.has_vertex_colors():
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    vertex = np.empty(len(vertices), fields + [("depth_sigma", "f4")])
+    vertex = np.empty(len(vertices), fields + [(name, "f4") for name in SIGMA_PROPERTIES])
     for k, name in enumerate("xyz"):
         vertex[name] = vertices[:, k]
     if mesh.has_vertex_colors():
         rgb = (np.clip(np.asarray(mesh.vertex_colors), 0, 1) * 255).round().astype(np.uint8)
         vertex["red"], vertex["green"], vertex["blue"] = rgb.T
-    vertex["depth_sigma"] = sigma
+    for name in SIGMA_PROPERTIES:
+        vertex[name] = sigma
     faces = np.empty(len(mesh.triangles), [("vertex_indices", "i4", (3,))])
     faces["vertex_indices"] = np.asarray(mesh.triangles, np.int32)
     data = plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(faces, "face")])
@@ -173,12 +181,13 @@ def read_mesh_ply(path) -> tuple[o3d.geometry.TriangleMesh, np.ndarray | None]:
 def write_point_cloud_ply(path, cloud: o3d.geometry.PointCloud, sigma: np.ndarray | None = None) -> None:
     """Write a point cloud as binary PLY, atomically: colours as uchar red/green/blue (what
     Open3D's readers, MeshLab, CloudCompare, trimesh and plyfile expect) and, given `sigma`
-    (M,), an extra float per-vertex property `depth_sigma` (m)."""
+    (M,) (m), the float per-vertex properties of :data:`SIGMA_PROPERTIES`."""
     t = o3d.t.geometry.PointCloud.from_legacy(cloud)
     if cloud.has_colors():
         t.point.colors = o3d.core.Tensor((np.clip(np.asarray(cloud.colors), 0, 1) * 255).round().astype(np.uint8))
     if sigma is not None:
-        t.point.depth_sigma = o3d.core.Tensor(np.asarray(sigma, np.float32)[:, None])
+        for name in SIGMA_PROPERTIES:
+            t.point[name] = o3d.core.Tensor(np.asarray(sigma, np.float32)[:, None])
     atomic_write(path, lambda p: o3d.t.io.write_point_cloud(p, t, write_ascii=False))
 
 

@@ -4,7 +4,7 @@ The folder holds ``reconstruction.json`` (format version, config, scene box, dep
 intrinsic, frame split, timestamps, depth-error law, statistics), ``model.pt`` (the field's
 weights only), ``poses.npy``, ``covariances.npy``, ``color_gains.npy``, ``observed.npy`` (the centres of the
 voxels the training frames' depth saw, when there was depth), ``mesh.ply`` (with
-per-vertex ``depth_sigma``), ``point_cloud.ply`` (with per-point ``depth_sigma``), ``frames/``
+per-vertex ``depth_sigma`` and ``quality``), ``point_cloud.ply`` (per-point, the same), ``frames/``
 (the frames it was built from, as an Open3D folder: what extending the map replays), and the
 trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's ``trajectory.json`` (a
 PinholeCameraTrajectory with the training intrinsic). Reading never unpickles code

@@ -27,6 +27,7 @@ from open3d_pnerf.export import (
     export_geometry,
     mesh_from_renders,
     point_cloud_from_renders,
+    read_mesh_ply,
     read_point_cloud_ply,
     uncertainty_colors,
     write_mesh_ply,
@@ -189,6 +190,31 @@ def test_point_cloud_ply_reads_the_same_in_open3d_and_other_ply_readers(tmp_path
     np.testing.assert_array_equal(vertex["depth_sigma"], sigma)
     np.testing.assert_allclose(np.stack([vertex["x"], vertex["y"], vertex["z"]], 1), np.asarray(cloud.points),
                                atol=1e-6)
+
+
+def test_meshlab_reads_the_sigma_of_every_vertex_and_point(tmp_path):
+    """pymeshlab (MeshLab's own reader) takes one per-vertex scalar, from a property named quality:
+    the mesh's and the cloud's sigma come back there, beside their colours."""
+    import pymeshlab
+
+    rng = np.random.default_rng(2)
+    mesh = o3d.geometry.TriangleMesh.create_sphere(0.5, resolution=8)
+    colors = rng.integers(0, 256, (len(mesh.vertices), 3)) / 255.0
+    mesh.vertex_colors = o3d.utility.Vector3dVector(colors)
+    sigma = rng.random(len(mesh.vertices)).astype(np.float32) * 0.05
+    cloud = o3d.geometry.PointCloud(mesh.vertices)
+    cloud.colors = mesh.vertex_colors
+    write_mesh_ply(tmp_path / "mesh.ply", mesh, sigma)
+    write_point_cloud_ply(tmp_path / "cloud.ply", cloud, sigma)
+    for name, faces in (("mesh.ply", len(mesh.triangles)), ("cloud.ply", 0)):
+        meshes = pymeshlab.MeshSet()
+        meshes.load_new_mesh(str(tmp_path / name))
+        read = meshes.current_mesh()
+        assert read.vertex_number() == len(sigma) and read.face_number() == faces
+        assert read.has_vertex_scalar(), name
+        np.testing.assert_allclose(read.vertex_scalar_array(), sigma, rtol=1e-6)
+        np.testing.assert_allclose(read.vertex_color_matrix()[:, :3], colors, atol=1e-6)
+    assert read_mesh_ply(tmp_path / "mesh.ply")[1] == pytest.approx(sigma)
 
 
 def test_mesh_from_renders_fuses_a_plane(tmp_path):
