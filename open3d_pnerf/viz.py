@@ -19,7 +19,7 @@ def geometry_figure(mesh: o3d.geometry.TriangleMesh | None = None, point_cloud: 
     mesh: drawn with its vertex colours (decimated to at most `max_triangles`). point_cloud:
     at most `max_points` random points (seeded), coloured by `point_sigma` (M,) metres when
     given (a colour bar in millimetres), else by their own colours. Display it with
-    ``fig.show()`` or as a notebook cell's value.
+    ``fig.show()``, or :func:`notebook_view` for a notebook that is read as HTML.
     """
     try:
         import plotly.graph_objects as go
@@ -54,6 +54,16 @@ def geometry_figure(mesh: o3d.geometry.TriangleMesh | None = None, point_cloud: 
     fig.update_layout(scene=dict(aspectmode="data"), margin=dict(l=0, r=0, t=30 if title else 0, b=0), title=title,
                       height=500)
     return fig
+
+
+def notebook_view(figure):
+    """A plotly `figure` as a notebook output that draws wherever the notebook is opened as HTML
+    (nbconvert, nbviewer, a browser with no network): an ``IPython.display.HTML`` with plotly.js
+    inline (about 5 MB), where ``figure.show()`` leaves only plotly's JupyterLab mimetype, which
+    an exported notebook shows blank. Make it a cell's value (or ``display`` it)."""
+    from IPython.display import HTML
+
+    return HTML(figure.to_html(include_plotlyjs=True, full_html=False))
 
 
 def _rgb(color) -> str:
