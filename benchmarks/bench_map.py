@@ -43,7 +43,9 @@ COLUMNS = [  # label, key, factor, format
     ("depth L1 model only (mm)", "depth_l1_only", 1000, ".1f"), ("model-only share", "only_share", 1, ".3f"),
     ("99.7% interval holds (model only)", "within_3_only", 1, ".3f"),
     ("PSNR (dB)", "psnr", 1, ".2f"), ("PSNR common (dB)", "psnr_common", 1, ".2f"),
-    ("AUCE", "auce", 1, ".3f"), ("AUSE RMSE", "ause_rmse", 1, ".3f"), ("AUSE MAE", "ause_mae", 1, ".3f")]
+    ("AUCE", "auce", 1, ".3f"), ("AUSE RMSE", "ause_rmse", 1, ".3f"), ("AUSE MAE", "ause_mae", 1, ".3f"),
+    ("exact in 1 sigma (0.683)", "exact_within_1", 1, ".3f"), ("exact in 2 sigma (0.954)", "exact_within_2", 1, ".3f"),
+    ("exact in 3 sigma (0.997)", "exact_within_3", 1, ".3f")]
 
 
 def run_one(spec: dict) -> dict:
@@ -53,7 +55,7 @@ def run_one(spec: dict) -> dict:
     torch.set_num_threads(spec["threads"])
     import open3d_pnerf as pn
     from open3d_pnerf import compare_with_tsdf
-    from open3d_pnerf.evaluation import geometry_metrics, heldout_views, score_views
+    from open3d_pnerf.evaluation import exact_sigma_coverage, geometry_metrics, heldout_views, score_views
     from open3d_pnerf.export import export_geometry
 
     seq, reference = load(spec["source"], Path(spec["cache"]))
@@ -65,6 +67,10 @@ def run_one(spec: dict) -> dict:
     comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
     compare_s = time.perf_counter() - t0
     table = comparison.table
+    if reference is not None:  # the exported sigmas against the exact errors: the mesh's vertices, the fused depth
+        coverage = exact_sigma_coverage(recon, seq, reference)
+        for row, key in (("mesh", "mesh"), ("fused_depth", "fused_depth")):
+            table.setdefault(row, {}).update({f"exact_{k}": v for k, v in coverage.get(key, {}).items()})
     model_only = export_geometry(recon, progress=False).mesh  # the export without the sensor
     if model_only.has_triangles():
         views = heldout_views(recon, seq, {"model_only": model_only})
@@ -135,10 +141,12 @@ def markdown(results: list[dict], meta: dict) -> str:
              "Each cell: the mean over the seeds (min..max). Held-out frames: depth L1 on the pixels every method "
              "but the default-threshold TSDF covers (common), on each method's own hits, and where only the model "
              "(or its mesh) covers, each with its share of the pixels with sensor depth; acc./compl./F against the "
-             "exact surface (synthetic only). The TSDF rows are Open3D's of the same training frames and poses.", ""]
+             "exact surface (synthetic only), and there the shares of the exact errors inside 1, 2, 3 of the exported "
+             "sigmas (the mesh's vertices: distance to the exact surface; the fused depth of the export views: "
+             "depth error at each pixel). The TSDF rows are Open3D's of the same training frames and poses.", ""]
     labels = {"model": "model (renders)", "mesh": "exported mesh", "sensor": "sensor alone",
               "tsdf": "TSDF, same threshold", "tsdf_default": "TSDF, Open3D default threshold",
-              "model_only": "model-only mesh"}
+              "model_only": "model-only mesh", "fused_depth": "fused depth (export views)"}
     groups = {}
     for r in results:
         groups.setdefault((r["dataset"], r["loss"]), []).append(r)

@@ -14,9 +14,9 @@ from .error_law import GAUSSIAN_SHARES, depth_nll, sigma_multiple
 from .errors import InputError
 from .raycast import MeshRaycaster
 
-__all__ = ["GAUSSIAN_SHARES", "auce", "ause", "depth_calibration", "depth_errors", "depth_nll", "geometry_metrics",
-           "heldout_scores", "heldout_views", "mse_to_psnr", "psnr", "score_views", "sigma_multiple", "sparsification", "ssim",
-           "training_depth_errors"]
+__all__ = ["GAUSSIAN_SHARES", "auce", "ause", "depth_calibration", "depth_errors", "depth_nll", "exact_sigma_coverage",
+           "geometry_metrics", "heldout_scores", "heldout_views", "mse_to_psnr", "psnr", "score_views", "sigma_coverage",
+           "sigma_multiple", "sparsification", "ssim", "training_depth_errors"]
 
 
 def mse_to_psnr(mse):
@@ -164,6 +164,38 @@ def geometry_metrics(pred, reference, thresholds=(0.02, 0.05), n_points: int = 2
         p, r = float((d_pred <= t).mean()), float((d_ref <= t).mean())
         key = f"{t * 1000:g}mm"
         out.update({f"precision_{key}": p, f"recall_{key}": r, f"fscore_{key}": 2 * p * r / (p + r) if p + r else 0.0})
+    return out
+
+
+def sigma_coverage(err: np.ndarray, sigma: np.ndarray) -> dict:
+    """Shares of errors `err` (any shape, m) inside k `sigma` (the same shape, m), k = 1, 2, 3, as
+    within_1..3 (a Gaussian sigma claims 0.683, 0.954, 0.997), and their count; nan without errors."""
+    err, sigma = np.abs(np.asarray(err, np.float64)).ravel(), np.asarray(sigma, np.float64).ravel()
+    shares = {f"within_{k}": float(np.mean(err <= k * sigma)) if err.size else float("nan") for k in (1, 2, 3)}
+    return {**shares, "count": int(err.size)}
+
+
+def exact_sigma_coverage(recon, sequence: RGBDSequence, reference: o3d.geometry.TriangleMesh) -> dict:
+    """How a reconstruction's exported sigmas hold its exact errors (a synthetic scene, whose exact
+    surface `reference` is known): {"fused_depth": ..., "mesh": ...}, each :func:`sigma_coverage`.
+    fused_depth: the export views' depth (:func:`~open3d_pnerf.export.export_views`, the sensor's
+    fused with the model's) against the reference's depth at the same pixels, where both exist;
+    mesh: the distance of each of recon.mesh's vertices to the reference against its sigma
+    (recon.mesh_sigma)."""
+    from .export import export_views
+
+    views = export_views(recon, sequence, progress=False)
+    exact, err, sigma = MeshRaycaster(reference), [], []
+    for pose, r in zip(views.poses, views.renders):
+        h, w = r["depth"].shape
+        z = exact.render(pose, views.K, w, h)["depth"]
+        scored = (r["depth"] > 0) & np.isfinite(r["depth_std"]) & (z > 0)
+        err.append(r["depth"][scored] - z[scored])
+        sigma.append(r["depth_std"][scored])
+    out = {"fused_depth": sigma_coverage(np.concatenate(err), np.concatenate(sigma))}
+    if recon.mesh is not None and recon.mesh_sigma is not None and recon.mesh.has_vertices():
+        distance = _distances(o3d.geometry.PointCloud(recon.mesh.vertices), reference, None)
+        out["mesh"] = sigma_coverage(distance, recon.mesh_sigma)
     return out
 
 

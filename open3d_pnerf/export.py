@@ -210,9 +210,22 @@ class Geometry:
     point_sigma: np.ndarray | None = None
 
 
-def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportConfig | None = None,
-                    progress: bool = True) -> Geometry:
-    """The mesh and point cloud of a Reconstruction, with their depth sigma.
+@dataclasses.dataclass
+class ExportViews:
+    """The per-view depth an export builds its geometry from: renders (dicts with color (H, W, 3),
+    depth and depth_std (H, W) z metres, opacity (H, W)) at camera-to-world `poses` (V, 4, 4) with
+    intrinsic matrix K (3, 3); `fused`: each render's depth fused with the sensor's (at the training
+    resolution), else the model's alone (at ExportConfig.scale)."""
+
+    poses: np.ndarray
+    K: np.ndarray
+    renders: list[dict]
+    fused: bool
+
+
+def export_views(recon, sequence: RGBDSequence | None = None, config: ExportConfig | None = None,
+                 progress: bool = True) -> ExportViews:
+    """The depth of :func:`export_geometry`'s views, before surfaces are made of it.
 
     Renders training views (at most config.max_views, evenly spaced) at config.scale of the
     training resolution (config.fused_scale when fused with sensor depth). sequence: the input
@@ -223,17 +236,15 @@ def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportC
     part (targets.depth_sigma_relative) is common to both, the model having learned from this
     sensor, so it is added to the fused variance afterwards: observed surfaces keep the sensor's
     accuracy, the others come from the model, each with its fused sigma. config: the export
-    settings (default: the reconstruction's). :func:`sensor_geometry` is the same export without
-    the model.
+    settings (default: the reconstruction's).
     """
     cfg = config or recon.config.export
     poses, views = _export_views(recon, sequence, cfg)
     intr = scale_intrinsic(recon.intrinsic, cfg.scale) if views is None else \
         scale_intrinsic(views.intrinsic, cfg.fused_scale)
     renders = [recon.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
-    level_set = recon if getattr(recon.field, "sdf", None) is not None else None
-    if views is None:  # the model alone; its depth filtered by config.max_point_std
-        return _geometry(renders, poses, intrinsic_matrix(intr), cfg, cfg.max_point_std, 1, level_set)
+    if views is None:
+        return ExportViews(poses, intrinsic_matrix(intr), renders, fused=False)
     noise = recon.config.targets.sensor_noise()
     for k, r in enumerate(renders):
         z = _inside_box(views[k].depth, views.K, poses[k], recon.aabb)
@@ -245,7 +256,22 @@ def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportC
         common = np.where(z > 0, noise.systematic_var(fused["depth"]), 0)
         fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
         renders[k] = fused
-    return _geometry(renders, poses, views.K, cfg, np.inf, max(1, round(1 / cfg.scale)), level_set)
+    return ExportViews(poses, views.K, renders, fused=True)
+
+
+def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportConfig | None = None,
+                    progress: bool = True) -> Geometry:
+    """The mesh and point cloud of a Reconstruction, with their depth sigma, made of the depth of
+    :func:`export_views` (the model's alone, filtered by config.max_point_std, without a sequence
+    with depth images; fused with the sensor's otherwise). config: the export settings (default:
+    the reconstruction's). :func:`sensor_geometry` is the same export without the model.
+    """
+    cfg = config or recon.config.export
+    views = export_views(recon, sequence, cfg, progress)
+    level_set = recon if getattr(recon.field, "sdf", None) is not None else None
+    if not views.fused:
+        return _geometry(views.renders, views.poses, views.K, cfg, cfg.max_point_std, 1, level_set)
+    return _geometry(views.renders, views.poses, views.K, cfg, np.inf, max(1, round(1 / cfg.scale)), level_set)
 
 
 def sensor_geometry(recon, sequence: RGBDSequence, config: ExportConfig | None = None) -> Geometry:

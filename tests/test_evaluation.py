@@ -27,10 +27,12 @@ from open3d_pnerf.evaluation import (
     depth_calibration,
     depth_errors,
     depth_nll,
+    exact_sigma_coverage,
     geometry_metrics,
     heldout_views,
     psnr,
     score_views,
+    sigma_coverage,
     sigma_multiple,
     sparsification,
     ssim,
@@ -489,6 +491,30 @@ def test_compare_with_tsdf_on_the_synthetic_room(comparison, small_room):
         for key, value in rescored[name].items():
             assert c.table[name][key] == pytest.approx(value, abs=1e-5), (name, key)
     assert all(i["surfaces"] == {} for i in heldout_views(recon, small_room.sequence))
+
+
+def test_sigma_coverage_of_gaussian_errors_gives_the_gaussian_shares():
+    rng = np.random.default_rng(3)
+    sigma = rng.uniform(0.005, 0.05, 200_000)
+    shares = sigma_coverage(rng.normal(0, sigma), sigma)
+    assert shares["count"] == 200_000
+    for k in (1, 2, 3):
+        assert shares[f"within_{k}"] == pytest.approx(GAUSSIAN_SHARES[k], abs=0.004)
+    assert sigma_coverage(0.5 * rng.normal(0, sigma), sigma)["within_1"] > 0.95  # too wide: over-covers
+    assert math.isnan(sigma_coverage(np.zeros(0), np.zeros(0))["within_2"])
+
+
+@pytest.mark.slow
+def test_exact_sigma_coverage_scores_the_export_against_the_exact_surface(comparison, small_room):
+    coverage = exact_sigma_coverage(comparison.reconstruction, small_room.sequence, small_room.mesh)
+    for part in ("fused_depth", "mesh"):
+        shares = coverage[part]
+        assert shares["count"] > 1000, part
+        assert 0 < shares["within_1"] <= shares["within_2"] <= shares["within_3"] <= 1, part
+    recon = comparison.reconstruction
+    assert coverage["mesh"]["count"] == len(recon.mesh.vertices)
+    # the sensor's noise model is the synthetic sensor's: its fused depth errors are mostly inside 3 sigma
+    assert coverage["fused_depth"]["within_3"] > 0.9
 
 
 @pytest.mark.slow
