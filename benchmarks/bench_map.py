@@ -68,7 +68,10 @@ def run_one(spec: dict) -> dict:
     compare_s = time.perf_counter() - t0
     table = comparison.table
     if reference is not None:  # the exported sigmas against the exact errors: the mesh's vertices, the fused depth
-        coverage = exact_sigma_coverage(recon, seq, reference)
+        import open3d as o3d
+
+        surface = o3d.io.read_triangle_mesh(str(Path(spec["cache"]) / spec["source"] / "surface.ply"))
+        coverage = exact_sigma_coverage(recon, seq, surface)
         for row, key in (("mesh", "mesh"), ("fused_depth", "fused_depth")):
             table.setdefault(row, {}).update({f"exact_{k}": v for k, v in coverage.get(key, {}).items()})
     model_only = export_geometry(recon, progress=False).mesh  # the export without the sensor

@@ -93,9 +93,10 @@ def load(dataset: str, cache: Path):
 
 
 def prepare_synthetic(cache: Path, quick: bool) -> str:
-    """Render the synthetic sequence and its exact visible surface once, to a Redwood folder
+    """Render the synthetic sequence and its exact visible surface (reference.ply, points) once, to a Redwood folder
     in the cache (PNG colour, depth in mm), so that runs read frames instead of re-rendering
-    them. The folder name carries a hash of synthetic.py: a changed generator renders anew.
+    them, with the room's whole exact mesh (surface.ply). The folder name carries a hash of synthetic.py:
+    a changed generator renders anew.
     Returns the dataset name (the folder's name)."""
     import open3d as o3d
 
@@ -109,6 +110,8 @@ def prepare_synthetic(cache: Path, quick: bool) -> str:
         data = synthetic.synthetic_sequence(16 if quick else 48, 320 if quick else 640, 240 if quick else 480, seed=0)
         write_sequence(data.sequence, folder)
         o3d.io.write_point_cloud(str(folder / "reference.ply"), data.reference_points(stride=2))
+    if not (folder / "surface.ply").is_file():  # the whole exact surface, for exact depth errors
+        o3d.io.write_triangle_mesh(str(folder / "surface.ply"), synthetic.room_scene(seed=0).mesh)
     return name
 
 

@@ -184,6 +184,9 @@ def exact_sigma_coverage(recon, sequence: RGBDSequence, reference: o3d.geometry.
     (recon.mesh_sigma)."""
     from .export import export_views
 
+    if not isinstance(reference, o3d.geometry.TriangleMesh) or not reference.has_triangles():
+        raise InputError(f"exact_sigma_coverage(): reference must be the exact surface as an "
+                         f"open3d.geometry.TriangleMesh with triangles, got {type(reference).__name__}")
     views = export_views(recon, sequence, progress=False)
     exact, err, sigma = MeshRaycaster(reference), [], []
     for pose, r in zip(views.poses, views.renders):

@@ -515,6 +515,8 @@ def test_exact_sigma_coverage_scores_the_export_against_the_exact_surface(compar
     assert coverage["mesh"]["count"] == len(recon.mesh.vertices)
     # the sensor's noise model is the synthetic sensor's: its fused depth errors are mostly inside 3 sigma
     assert coverage["fused_depth"]["within_3"] > 0.9
+    with pytest.raises(InputError, match="reference must be the exact surface"):
+        exact_sigma_coverage(recon, small_room.sequence, small_room.reference_points())
 
 
 @pytest.mark.slow
