@@ -9,12 +9,18 @@ depth and colour on the pixels every method covers, on each method's own hits an
 model covers (with the share of the errors inside its 99.7% interval there); accuracy,
 completeness and F-scores against the exact surface (synthetic room only). Beside them the
 model-only mesh (the export without the sensor: the neural surface's own geometry).
+With --ensemble K, beside each pnerf run the ensemble baseline of predictive uncertainty (K seeds, the
+spread of their depths calibrated as the model's sigma is: ensemble_rows), at equal steps per member and
+at equal total steps; the model's depth sigma is scored on every held-out pixel with sensor depth (shares
+inside its 68.3/95.4/99.7% intervals, NLL, AUCE, AUSE). Where the synthetic room's exact mesh is known,
+the exported sigmas (fused depth, mesh vertices) are scored against exact errors.
 Datasets: synthetic (the room of bench_suite.py: 10 training views), synthetic_all (all 36 views,
 pnerf only), tum (TUM fr1/xyz, 24 training frames), 7scenes (redkitchen 150-199, 38 training
 frames). The targets of the fair comparison are checked per seed at the end.
 
     python benchmarks/bench_map.py [--datasets synthetic,synthetic_all,tum,7scenes] [--losses pnerf,photometric]
                                    [--seeds 0,1,2] [--set geometry=sdf ...] (config overrides of every run) [--name map]
+                                   [--ensemble 3]
     python benchmarks/bench_map.py --name map --markdown-only     (the .md again from the .json)
 
 Writes benchmarks/results/<name>.json and <name>.md.
@@ -43,6 +49,8 @@ COLUMNS = [  # label, key, factor, format
     ("depth L1 model only (mm)", "depth_l1_only", 1000, ".1f"), ("model-only share", "only_share", 1, ".3f"),
     ("99.7% interval holds (model only)", "within_3_only", 1, ".3f"),
     ("PSNR (dB)", "psnr", 1, ".2f"), ("PSNR common (dB)", "psnr_common", 1, ".2f"),
+    ("depth L1 (mm)", "depth_l1", 1000, ".1f"), ("in 68.3%", "within_1", 1, ".3f"), ("in 95.4%", "within_2", 1, ".3f"),
+    ("in 99.7%", "within_3", 1, ".3f"), ("NLL", "nll", 1, ".2f"),
     ("AUCE", "auce", 1, ".3f"), ("AUSE RMSE", "ause_rmse", 1, ".3f"), ("AUSE MAE", "ause_mae", 1, ".3f"),
     ("exact in 1 sigma (0.683)", "exact_within_1", 1, ".3f"), ("exact in 2 sigma (0.954)", "exact_within_2", 1, ".3f"),
     ("exact in 3 sigma (0.997)", "exact_within_3", 1, ".3f")]
@@ -81,10 +89,79 @@ def run_one(spec: dict) -> dict:
         if reference is not None:
             row.update(geometry_metrics(model_only, reference))
         table["model_only"] = {k: round(v, 5) for k, v in row.items()}
+    ensemble_s = {}
+    if spec.get("ensemble", 1) > 1 and spec["loss"] == "pnerf":
+        rows, ensemble_s = ensemble_rows(recon, seq, poses, covs, cfg, spec["ensemble"])
+        table.update(rows)
     return {**{k: spec[k] for k in ("dataset", "loss", "seed")}, "views": len(recon.train_indices), "table": table,
+            "ensemble_train_s": ensemble_s,
             "mesh_triangles": len(recon.mesh.triangles), "train_s": recon.stats["training"]["seconds"],
             "steps": recon.stats["training"]["steps"], "export_s": recon.stats["timings"]["export_s"],
             "compare_s": round(compare_s, 1)}
+
+
+def ensemble_rows(recon, seq, poses, covs, cfg, members: int) -> dict:
+    """The ensemble baseline of predictive uncertainty (--ensemble K): K pnerf models of other seeds,
+    their mean depth with the spread (std) of their depths as the raw sigma, calibrated as the single
+    model's is (DepthErrorLaw.fit by maximum likelihood on training frames: the same frames, pixels and
+    law), scored on the same held-out pixels by score_views: "ensemble" at equal steps per member (the
+    run's own model and K - 1 more, K times the compute), "ensemble_split" at equal total steps (K
+    models of 1/K of the steps and time budget each). The models of a run differ only in their seed."""
+    import open3d_pnerf as pn
+    from open3d_pnerf.error_law import DepthErrorLaw
+    from open3d_pnerf.evaluation import heldout_views, score_views
+
+    def train(seed, share=1):
+        budget = None if cfg.time_budget_s is None else cfg.time_budget_s / share
+        return pn.reconstruct(seq, cfg.replace(seed=seed, max_steps=cfg.max_steps // share, time_budget_s=budget),
+                              poses=poses, covariances=covs)
+
+    rows, seconds, intrinsic = {}, {}, seq.scaled_by(cfg.image_scale).intrinsic
+    for name, models in (("ensemble", lambda: [recon] + [train(cfg.seed + 1000 * j) for j in range(1, members)]),
+                         ("ensemble_split", lambda: [train(cfg.seed + 1000 * j, members) for j in range(members)])):
+        models = models()
+        law = DepthErrorLaw.fit(*_ensemble_training_errors(models, seq))
+        views = []
+        for item in heldout_views(recon, seq):  # the run's own model has rendered each held-out frame there
+            i = item["index"]
+            renders = [item["model"] if m is recon else m.render(recon.poses[i], intrinsic, frame=i) for m in models]
+            depth = np.stack([r["depth"] for r in renders])
+            spread = np.maximum(depth.std(0), 1e-6)
+            views.append({**item, "model": {"color": np.mean([r["color"] for r in renders], 0), "depth": depth.mean(0),
+                                            "opacity": np.mean([r["opacity"] for r in renders], 0),
+                                            "depth_std": law.sigma(spread, depth.mean(0))}})
+        row = score_views(views, cfg.export.min_opacity, law.dof)["model"]
+        rows[name] = {k: row[k] for k in ("psnr", "depth_l1", "within_1", "within_2", "within_3", "nll", "auce",
+                                          "ause_rmse", "ause_mae") if k in row}
+        seconds[name] = round(sum(m.stats["training"]["seconds"] for m in models), 1)
+    return rows, seconds
+
+
+def _ensemble_training_errors(models, seq) -> tuple:
+    """(err, spread, z) (M,) m of an ensemble on its training frames, as training_depth_errors draws them
+    for one model (up to 8 frames, 1024 pixels each, seeded): the members' mean depth against the
+    sensor's and the spread of the members' depths, where every member's opacity exceeds 0.5."""
+    import torch
+
+    from open3d_pnerf.camera import pixel_coordinates
+    from open3d_pnerf.data.sequence import evenly_spaced
+
+    first = models[0]
+    train = first.train_indices[evenly_spaced(len(first.train_indices), 8)]
+    view = seq.select(train).scaled_by(first.config.image_scale)
+    rng = np.random.default_rng(first.config.seed + 2)
+    err, spread, z = [], [], []
+    for k, i in enumerate(train):
+        depth = view[k].depth.reshape(-1)
+        pix = rng.choice(np.flatnonzero(depth > 0), min(1024, int((depth > 0).sum())), replace=False)
+        uv = [torch.as_tensor(c, dtype=torch.float32) for c in pixel_coordinates(pix, view.image_size[1])]
+        outs = [m.render_pixels(m.poses[i], view.intrinsic, *uv) for m in models]
+        d = np.stack([o["depth"] for o in outs])
+        ok = np.all([o["opacity"] > 0.5 for o in outs], 0)
+        err.append(np.abs(d.mean(0) - depth[pix])[ok])
+        spread.append(np.maximum(d.std(0), 1e-6)[ok])
+        z.append(depth[pix][ok])
+    return np.concatenate(err), np.concatenate(spread), np.concatenate(z)
 
 
 def mean_table(runs: list[dict]) -> dict:
@@ -128,6 +205,14 @@ def checks(runs: list[dict]) -> list[tuple[str, str, list[bool]]]:
         check(d, "mesh depth on its hits no worse than the TSDF's on its hits",
               lambda t, s: t["mesh"]["depth_l1_hits"] <= t["tsdf"]["depth_l1_hits"])
         check(d, "mesh holes at most 1% of the sensor's pixels", lambda t, s: t["mesh"]["coverage"] >= 0.99)
+        check(d, "model's depth sigma: AUCE at most 0.03", lambda t, s: t["model"]["auce"] <= 0.03)
+        for k, claim, tol in ((1, 0.683, 0.03), (2, 0.954, 0.02), (3, 0.997, 0.005)):
+            check(d, f"model's depth sigma: share inside the {claim:.1%} interval within {tol} of it",
+                  lambda t, s, k=k, claim=claim, tol=tol: abs(t["model"][f"within_{k}"] - claim) <= tol)
+        for name in ("ensemble", "ensemble_split"):
+            if any(name in r["table"] for r in runs if r["dataset"] == d):
+                check(d, f"AUSE-RMSE of pnerf's sigma below the {name.replace('_', ' ')}'s",
+                      lambda t, s, name=name: t["model"]["ause_rmse"] < t[name]["ause_rmse"])
         check(d, "model-only pixels: at least 99% of errors inside the 99.7% interval",
               lambda t, s: t["model"].get("within_3_only", 1.0) >= 0.99)
         colour_only = by.get((d, "photometric"), {})
@@ -149,7 +234,9 @@ def markdown(results: list[dict], meta: dict) -> str:
              "depth error at each pixel). The TSDF rows are Open3D's of the same training frames and poses.", ""]
     labels = {"model": "model (renders)", "mesh": "exported mesh", "sensor": "sensor alone",
               "tsdf": "TSDF, same threshold", "tsdf_default": "TSDF, Open3D default threshold",
-              "model_only": "model-only mesh", "fused_depth": "fused depth (export views)"}
+              "model_only": "model-only mesh", "fused_depth": "fused depth (export views)",
+              "ensemble": f"ensemble of {meta.get('ensemble')} (equal steps per member)",
+              "ensemble_split": f"ensemble of {meta.get('ensemble')} (equal total steps)"}
     groups = {}
     for r in results:
         groups.setdefault((r["dataset"], r["loss"]), []).append(r)
@@ -188,6 +275,8 @@ def main():
     ap.add_argument("--preset", default="fast", help="'test': a smoke test of the script")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a config override of every run, e.g. objective.weights.distortion=0.1 (repeatable)")
+    ap.add_argument("--ensemble", type=int, default=1, metavar="K",
+                    help="K > 1: beside each pnerf run, the ensemble baseline of K seeds (ensemble_rows)")
     ap.add_argument("--name", default="map")
     ap.add_argument("--markdown-only", action="store_true",
                     help="no runs: write results/<name>.md again from results/<name>.json (after a change of the tables)")
@@ -207,13 +296,15 @@ def main():
     t0 = time.perf_counter()
     synthetic = prepare_synthetic(cache, False) if any(d.startswith("synthetic") for d in datasets) else None
     specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else d, loss=loss, seed=seed,
-                  threads=args.threads, preset=args.preset, cache=str(cache), overrides=overrides)
+                  threads=args.threads, preset=args.preset, cache=str(cache), overrides=overrides,
+                  ensemble=args.ensemble)
              for seed in seeds for d in datasets for loss in losses if d not in MESH_ONLY or loss == "pnerf"]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
         f"{r['dataset']:14s} {r['loss']:12s} seed {r['seed']} mesh {r['table']['mesh']} "
         f"sensor {r['table'].get('sensor')} tsdf {r['table'].get('tsdf')}"))
     meta = {"machine": machine(), "seeds": seeds, "threads": args.threads, "jobs": args.jobs, "preset": args.preset,
-            "overrides": overrides, "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS}
+            "overrides": overrides, "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS,
+            "ensemble": args.ensemble}
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(results, meta))
     print((OUT / f"{args.name}.md").read_text())
