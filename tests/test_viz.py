@@ -1,11 +1,13 @@
 """open3d_pnerf.viz: interactive plotly views that need no display."""
 
+import re
+
 import numpy as np
 import open3d as o3d
 import pytest
 
 from open3d_pnerf.errors import InputError
-from open3d_pnerf.viz import geometry_figure
+from open3d_pnerf.viz import geometry_figure, notebook_view
 
 
 def test_geometry_figure_draws_a_coloured_mesh_and_points_coloured_by_sigma():
@@ -23,3 +25,10 @@ def test_geometry_figure_draws_a_coloured_mesh_and_points_coloured_by_sigma():
         geometry_figure(point_cloud=cloud, point_sigma=sigma[:10])
     with pytest.raises(InputError):
         geometry_figure()
+
+
+def test_notebook_view_carries_plotly_js_for_a_reader_without_network():
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(1).random((50, 3))))
+    html = notebook_view(geometry_figure(point_cloud=cloud)).data
+    assert "Plotly.newPlot" in html and "scatter3d" in html
+    assert len(html) > 1_000_000 and not re.search(r"<script[^>]+src=", html)  # plotly.js inline, nothing to download
