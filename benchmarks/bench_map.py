@@ -138,30 +138,20 @@ def ensemble_rows(recon, seq, poses, covs, cfg, members: int) -> dict:
 
 
 def _ensemble_training_errors(models, seq) -> tuple:
-    """(err, spread, z) (M,) m of an ensemble on its training frames, as training_depth_errors draws them
-    for one model (up to 8 frames, 1024 pixels each, seeded): the members' mean depth against the
-    sensor's and the spread of the members' depths, where every member's opacity exceeds 0.5."""
-    import torch
+    """(err, spread, z) (M,) m of an ensemble on its training frames, at the pixels where one model's
+    law is fitted (evaluation.training_pixels): the members' mean depth against the sensor's and the
+    spread of the members' depths, where every member's opacity exceeds 0.5."""
+    from open3d_pnerf.evaluation import training_pixels
 
-    from open3d_pnerf.camera import pixel_coordinates
-    from open3d_pnerf.data.sequence import evenly_spaced
-
-    first = models[0]
-    train = first.train_indices[evenly_spaced(len(first.train_indices), 8)]
-    view = seq.select(train).scaled_by(first.config.image_scale)
-    rng = np.random.default_rng(first.config.seed + 2)
-    err, spread, z = [], [], []
-    for k, i in enumerate(train):
-        depth = view[k].depth.reshape(-1)
-        pix = rng.choice(np.flatnonzero(depth > 0), min(1024, int((depth > 0).sum())), replace=False)
-        uv = [torch.as_tensor(c, dtype=torch.float32) for c in pixel_coordinates(pix, view.image_size[1])]
-        outs = [m.render_pixels(m.poses[i], view.intrinsic, *uv) for m in models]
+    err, spread, depth = [], [], []
+    for i, intrinsic, u, v, z in training_pixels(models[0], seq):
+        outs = [m.render_pixels(m.poses[i], intrinsic, u, v) for m in models]
         d = np.stack([o["depth"] for o in outs])
         ok = np.all([o["opacity"] > 0.5 for o in outs], 0)
-        err.append(np.abs(d.mean(0) - depth[pix])[ok])
+        err.append(np.abs(d.mean(0) - z)[ok])
         spread.append(np.maximum(d.std(0), 1e-6)[ok])
-        z.append(depth[pix][ok])
-    return np.concatenate(err), np.concatenate(spread), np.concatenate(z)
+        depth.append(z[ok])
+    return np.concatenate(err), np.concatenate(spread), np.concatenate(depth)
 
 
 def mean_table(runs: list[dict]) -> dict:

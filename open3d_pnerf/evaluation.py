@@ -16,7 +16,7 @@ from .raycast import MeshRaycaster
 
 __all__ = ["GAUSSIAN_SHARES", "auce", "ause", "depth_calibration", "depth_errors", "depth_nll", "exact_sigma_coverage",
            "geometry_metrics", "heldout_scores", "heldout_views", "mse_to_psnr", "psnr", "score_views", "sigma_coverage",
-           "sigma_multiple", "sparsification", "ssim", "training_depth_errors"]
+           "sigma_multiple", "sparsification", "ssim", "training_depth_errors", "training_pixels"]
 
 
 def mse_to_psnr(mse):
@@ -322,29 +322,37 @@ class _Pool:
         return {k: round(float(v), 5) for k, v in out.items()}
 
 
+def training_pixels(recon, sequence: RGBDSequence, frames: int = 8, pixels: int = 1024):
+    """Yield, for up to `frames` training frames of a Reconstruction (evenly spaced) at the training
+    resolution, (i, intrinsic, u, v, z): the frame's index, its o3d PinholeCameraIntrinsic, `pixels`
+    random pixels with sensor depth (u, v (P,) float32 tensors on recon.device, drawn from config.seed
+    + 2) and their sensor z-depth (P,) m. Held-out frames are never read."""
+    train = recon.train_indices[evenly_spaced(len(recon.train_indices), frames)]
+    seq = sequence.select(train).scaled_by(recon.config.image_scale)
+    rng = np.random.default_rng(recon.config.seed + 2)
+    for k, i in enumerate(train):
+        depth = seq[k].depth.reshape(-1)
+        pix = rng.choice(np.flatnonzero(depth > 0), min(pixels, int((depth > 0).sum())), replace=False)
+        u, v = (torch.as_tensor(c, dtype=torch.float32, device=recon.device)
+                for c in pixel_coordinates(pix, seq.image_size[1]))
+        yield int(i), seq.intrinsic, u, v, depth[pix]
+
+
 def training_depth_errors(recon, sequence: RGBDSequence, frames: int = 8,
                           pixels: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(err, spread, z, unseen), each (M,) metres: a Reconstruction's depth errors against the
     sensor on its training frames, the raw spread of its depth distribution there (at least 1 um),
     the sensor's z-depth and the rendered point's distance to the observed surfaces
-    (recon.observed; 0 without them). Up to `frames` training frames (evenly spaced) at the
-    training resolution, `pixels` random pixels of each with sensor depth (drawn from config.seed
-    + 2), kept where the model's opacity exceeds 0.5; held-out frames are never read."""
-    train = recon.train_indices[evenly_spaced(len(recon.train_indices), frames)]
-    seq = sequence.select(train).scaled_by(recon.config.image_scale)
-    rng = np.random.default_rng(recon.config.seed + 2)
+    (recon.observed; 0 without them), at the pixels of :func:`training_pixels`, kept where the
+    model's opacity exceeds 0.5."""
     rows = []
-    for k, i in enumerate(train):
-        depth = seq[k].depth.reshape(-1)
-        pix = rng.choice(np.flatnonzero(depth > 0), min(pixels, int((depth > 0).sum())), replace=False)
-        u, v = pixel_coordinates(pix, seq.image_size[1])
-        out = recon.render_pixels(recon.poses[i], seq.intrinsic, *(torch.as_tensor(c, dtype=torch.float32,
-                                                                                   device=recon.device) for c in (u, v)))
+    for i, intrinsic, u, v, z in training_pixels(recon, sequence, frames, pixels):
+        out = recon.render_pixels(recon.poses[i], intrinsic, u, v)
         ok = out["opacity"] > 0.5
-        unseen = recon.unseen_distance(recon.poses[i], seq.K, u[ok], v[ok], out["depth"][ok])
+        unseen = recon.unseen_distance(recon.poses[i], np.asarray(intrinsic.intrinsic_matrix), u.cpu().numpy()[ok],
+                                       v.cpu().numpy()[ok], out["depth"][ok])
         unseen = np.zeros(ok.sum()) if unseen is None else unseen
-        rows.append((np.abs(out["depth"] - depth[pix])[ok], np.maximum(out["depth_std"][ok], 1e-6), depth[pix][ok],
-                     unseen))
+        rows.append((np.abs(out["depth"] - z)[ok], np.maximum(out["depth_std"][ok], 1e-6), z[ok], unseen))
     return tuple(np.concatenate(a) for a in zip(*rows)) if rows else (np.zeros(0),) * 4
 
 
