@@ -16,7 +16,8 @@ inside its 68.3/95.4/99.7% intervals, NLL, AUCE, AUSE). Where the synthetic room
 the exported sigmas (fused depth, mesh vertices) are scored against exact errors.
 Datasets: synthetic (the room of bench_suite.py: 10 training views), synthetic_all (all 36 views,
 pnerf only), tum (TUM fr1/xyz, 24 training frames), 7scenes (redkitchen 150-199, 38 training
-frames). The targets of the fair comparison are checked per seed at the end.
+frames), tum_10 and 7scenes_10 (the same with 10 training views, evenly spaced). The targets of the
+fair comparison are checked per seed at the end.
 
     python benchmarks/bench_map.py [--datasets synthetic,synthetic_all,tum,7scenes] [--losses pnerf,photometric]
                                    [--seeds 0,1,2] [--set geometry=sdf ...] (config overrides of every run) [--name map]
@@ -39,7 +40,8 @@ from bench_suite import OUT, PATHS, SHARED, load, machine, poses_for, prepare_sy
 
 from open3d_pnerf.config import overrides as config_overrides
 
-VIEWS = {"synthetic": 10, "synthetic_all": 0, "tum": 0, "7scenes": 0}  # training views (0 = all)
+VIEWS = {"synthetic": 10, "synthetic_all": 0, "tum": 0, "7scenes": 0, "tum_10": 10, "7scenes_10": 10}  # training views (0 = all)
+SOURCES = {"tum_10": "tum", "7scenes_10": "7scenes"}  # the sparse variants' recordings
 MESH_ONLY = {"synthetic_all"}  # datasets run with pnerf only (the all-views mesh against the TSDF's)
 COLUMNS = [  # label, key, factor, format
     ("acc. (mm)", "accuracy", 1000, ".1f"), ("compl. (mm)", "completeness", 1000, ".1f"),
@@ -187,7 +189,7 @@ def checks(runs: list[dict]) -> list[tuple[str, str, list[bool]]]:
         check("synthetic_all", f"mesh {key} better than the TSDF's (same threshold)",
               lambda t, s, k=key: t["mesh"][k] < t["tsdf"][k])
     check("synthetic_all", "mesh F@20mm better than the TSDF's", lambda t, s: t["mesh"]["fscore_20mm"] > t["tsdf"]["fscore_20mm"])
-    for d in ("tum", "7scenes"):
+    for d in ("tum", "7scenes", "tum_10", "7scenes_10"):
         check(d, "model depth on common pixels no worse than the TSDF's",
               lambda t, s: t["model"]["depth_l1_common"] <= t["tsdf"]["depth_l1_common"])
         check(d, "mesh depth on common pixels at most 0.8x the TSDF's",
@@ -278,14 +280,15 @@ def main():
     datasets, losses = args.datasets.split(","), args.losses.split(",")
     seeds = [int(s) for s in args.seeds.split(",")]
     overrides = config_overrides(args.set)
-    missing = [d for d in datasets if not d.startswith("synthetic") and not PATHS.get(d, SHARED / "?").is_dir()]
+    missing = [d for d in datasets
+               if not d.startswith("synthetic") and not PATHS.get(SOURCES.get(d, d), SHARED / "?").is_dir()]
     if missing:
         raise SystemExit(f"shared data not found for {missing} (expected under {SHARED})")
     cache = OUT / "cache"
     cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     synthetic = prepare_synthetic(cache, False) if any(d.startswith("synthetic") for d in datasets) else None
-    specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else d, loss=loss, seed=seed,
+    specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else SOURCES.get(d, d), loss=loss, seed=seed,
                   threads=args.threads, preset=args.preset, cache=str(cache), overrides=overrides,
                   ensemble=args.ensemble)
              for seed in seeds for d in datasets for loss in losses if d not in MESH_ONLY or loss == "pnerf"]
