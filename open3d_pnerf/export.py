@@ -269,9 +269,10 @@ def export_geometry(recon, sequence: RGBDSequence | None = None, config: ExportC
     cfg = config or recon.config.export
     views = export_views(recon, sequence, cfg, progress)
     level_set = recon if getattr(recon.field, "sdf", None) is not None else None
-    if not views.fused:
-        return _geometry(views.renders, views.poses, views.K, cfg, cfg.max_point_std, 1, level_set)
-    return _geometry(views.renders, views.poses, views.K, cfg, np.inf, max(1, round(1 / cfg.scale)), level_set)
+    # the model alone: its depth filtered by max_point_std, every pixel; fused (at the sensor's resolution):
+    # no filter, every pixel a render at the export scale would have
+    max_std, stride = (np.inf, max(1, round(1 / cfg.scale))) if views.fused else (cfg.max_point_std, 1)
+    return _geometry(views.renders, views.poses, views.K, cfg, max_std, stride, level_set)
 
 
 def sensor_geometry(recon, sequence: RGBDSequence, config: ExportConfig | None = None) -> Geometry:
