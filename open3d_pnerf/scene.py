@@ -16,14 +16,17 @@ from .data.sequence import RGBDSequence
 from .targets import DepthTargets
 
 BOX_MARGIN = 0.05  # m: what scene_box adds on every side beyond its relative padding
+BOX_PERCENTILE = 0.01  # %: the share of target points scene_box may leave out on each side of each axis
 NEAR_MARGIN = 0.9  # depth_range's near plane: 0.9 x the nearest SfM bound, as DS-NeRF (no NDC) and NeRF's LLFF loader
 
 
 def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: float = 0.1, stride: int = 4) -> np.ndarray:
     """(2, 3) axis-aligned box (m) holding the camera centres and the targets' surface points.
 
-    Uses the 0.5-99.5 percentiles of back-projected target depths (every `stride`-th pixel)
-    to ignore stray far points, then pads by `pad` times the size plus BOX_MARGIN.
+    Uses the BOX_PERCENTILE and 100 - BOX_PERCENTILE percentiles of the back-projected target
+    depths (every `stride`-th pixel), which ignore a few stray points but keep every surface the
+    sensor saw (a surface outside the box cannot be rendered: its rays end at the box), then pads
+    by `pad` times the size plus BOX_MARGIN.
     """
     pts = [poses[:, :3, 3]]
     for i in range(len(targets)):
@@ -31,7 +34,7 @@ def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: floa
         valid[::stride, ::stride] = targets.valid[i][::stride, ::stride]
         pts.append(backproject(targets.mean[i], K, poses[i], valid)[0])
     pts = np.concatenate(pts)
-    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
+    lo, hi = np.percentile(pts, BOX_PERCENTILE, axis=0), np.percentile(pts, 100 - BOX_PERCENTILE, axis=0)
     lo, hi = np.minimum(lo, poses[:, :3, 3].min(0)), np.maximum(hi, poses[:, :3, 3].max(0))
     margin = pad * (hi - lo) + BOX_MARGIN
     return np.stack([lo - margin, hi + margin]).astype(np.float32)
