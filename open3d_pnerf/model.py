@@ -113,7 +113,8 @@ class PNeRFModel(nn.Module):
 
         Returns the :class:`~open3d_pnerf.rendering.RayRender` fields named by `keys`: by default
         color (R, 3), depth (R,) expected ray distance, depth_var (R,), opacity (R,); also
-        t (R, S), edges (R, S + 1), weights (R, S) with S = n_coarse + n_fine + n_guided.
+        median (R,) median ray distance, t (R, S), edges (R, S + 1), weights (R, S) with
+        S = n_coarse + n_fine + n_guided.
         """
         outs = {k: [] for k in keys}
         for start in range(0, len(rays), chunk):

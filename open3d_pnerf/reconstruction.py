@@ -143,8 +143,8 @@ class Reconstruction:
         outside the scene box, its inverse inside) gives a warning.
         frame: index of one of the reconstruction's frames whose camera exposure the colour
         should have (``color_gains[frame]``); None gives the training frames' average exposure.
-        Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m,
-        depth_std (H, W) m (the spread of the model's depth distribution along each ray, made
+        Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m (the
+        median of the ray's termination distribution), depth_std (H, W) m (the spread of the model's depth distribution along each ray, made
         a calibrated 1-sigma error by :attr:`depth_error`; where the rendered point lies away
         from every surface the training frames' depth observed, :attr:`observed`, the law's
         unseen term widens it to a share of the depth), opacity (H, W) in [0, 1].
@@ -164,11 +164,13 @@ class Reconstruction:
         return {k: a.reshape(h, w, *a.shape[1:]) for k, a in out.items()}
 
     def render_pixels(self, pose: np.ndarray, intrinsic, u: torch.Tensor, v: torch.Tensor, chunk: int = 2048) -> dict:
-        """Numpy color (R, 3) in [0, 1], z-depth depth and raw (uncalibrated) depth_std (R,) m,
-        opacity (R,) of pixels (u, v) (R,) of a camera-to-world pose (4, 4) with `intrinsic`."""
+        """Numpy color (R, 3) in [0, 1], z-depth depth (of the median ray distance: see
+        :attr:`~open3d_pnerf.rendering.RayRender.median`) and raw (uncalibrated) depth_std (R,) m (the
+        spread of the ray's weights), opacity (R,) of pixels (u, v) (R,) of a camera-to-world pose
+        (4, 4) with `intrinsic`."""
         rays = self._rays(pose, intrinsic, u, v)
-        out = self.model.render(rays, chunk)
-        return {"color": out["color"].clamp(0, 1).cpu().numpy(), "depth": (out["depth"] / rays.norms).cpu().numpy(),
+        out = self.model.render(rays, chunk, keys=("color", "median", "depth_var", "opacity"))
+        return {"color": out["color"].clamp(0, 1).cpu().numpy(), "depth": (out["median"] / rays.norms).cpu().numpy(),
                 "depth_std": (out["depth_var"].sqrt() / rays.norms).cpu().numpy(),
                 "opacity": out["opacity"].cpu().numpy()}
 

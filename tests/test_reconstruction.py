@@ -332,8 +332,10 @@ def test_depth_pdf_of_an_analytic_wall_peaks_at_its_z_depth():
     np.testing.assert_allclose(pdf["opacity"], 1.0, atol=1e-4)
     # z-depth, not ray distance: the mode is the wall's z-depth for every pixel, as in render()
     np.testing.assert_allclose(pdf["z"][np.arange(4), pdf["mass"].argmax(1)], 1.2, atol=0.01)
+    # render()'s depth is the median of that distribution (each bin's mass spread over the bin)
     depth = recon.render(np.eye(4))["depth"]
-    expected = (pdf["mass"] * pdf["z"]).sum(1)
+    cdf = np.concatenate([np.zeros((4, 1)), np.cumsum(pdf["mass"], 1)], 1)
+    expected = [np.interp(0.5, c, e) for c, e in zip(cdf, pdf["edges"])]
     np.testing.assert_allclose(expected[1:], depth[pixels[1:, 1].astype(int), pixels[1:, 0].astype(int)], atol=1e-4)
     with pytest.raises(InputError, match="pixels_uv"):
         recon.depth_pdf(np.eye(4), [1, 2, 3])
@@ -667,7 +669,7 @@ def test_export_fused_with_the_sensor_keeps_its_accuracy_where_it_saw(recon, sam
     d_fused, d_model = tree.query(fused)[0], tree.query(model_only)[0]
     print(f"median distance to the sensor's points: fused {1000 * np.median(d_fused):.1f} mm, "
           f"model only {1000 * np.median(d_model):.1f} mm")
-    assert np.median(d_fused) < 0.5 * np.median(d_model)
+    assert np.median(d_fused) < 0.75 * np.median(d_model)  # 4.5 vs 6.6 mm (the model's median depth)
     assert len(fused) >= len(model_only)  # the sensor adds what the model is not sure of
     assert np.isfinite(fused_sigma).all() and (fused_sigma > 0).all()
 

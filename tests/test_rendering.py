@@ -21,6 +21,7 @@ from open3d_pnerf.rendering import (
     render_rays,
     render_weights,
     stratified,
+    weight_quantile,
 )
 
 FX, FY, CX, CY = 200.0, 180.0, 79.5, 59.5
@@ -272,6 +273,27 @@ def test_composite_two_equal_spikes_have_the_known_variance():
     assert out.depth.item() == pytest.approx((ta + tb) / 2)
     assert out.depth_var.item() == pytest.approx(((tb - ta) / 2) ** 2)
     assert out.opacity.item() == pytest.approx(1.0)
+    # the expected depth lies in the empty space between the spikes; the median at their boundary
+    assert out.median.item() == pytest.approx(edges[0, a + 1].item(), abs=1e-6)
+
+
+def test_median_lies_on_the_heavier_of_two_surfaces():
+    edges = torch.linspace(1.0, 3.0, 21)[None]
+    weights = torch.zeros(1, 20)
+    weights[0, 2], weights[0, 15] = 0.3, 0.6  # a faint floater at 1.2-1.3 m, the wall at 2.5-2.6 m
+    median = weight_quantile(edges, weights, 0.5)
+    # half of the 0.9 total is 0.45: 0.15 into the wall's 0.6, a quarter of its 0.1 m bin
+    assert median.item() == pytest.approx(2.525, abs=1e-5)
+    expected = (weights * 0.5 * (edges[:, 1:] + edges[:, :-1])).sum() / weights.sum()
+    assert abs(expected.item() - median.item()) > 0.4  # the mean is in the empty space between
+
+
+def test_weight_quantile_inverts_a_piecewise_constant_cdf():
+    edges = torch.tensor([[0.0, 1.0, 3.0], [0.0, 1.0, 3.0]])
+    weights = torch.tensor([[1.0, 1.0], [0.0, 0.0]])  # half the mass in [0, 1], half in [1, 3]; none
+    torch.testing.assert_close(weight_quantile(edges, weights, 0.25), torch.tensor([0.5, 0.5]))
+    torch.testing.assert_close(weight_quantile(edges, weights, 0.75), torch.tensor([2.0, 2.0]))
+    torch.testing.assert_close(weight_quantile(edges, weights, 0.5), torch.tensor([1.0, 1.0]))
 
 
 def test_composite_colour_is_the_weighted_sum():

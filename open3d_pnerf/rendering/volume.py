@@ -19,7 +19,8 @@ class RayRender:
 
     t (R, S) sample distances and edges (R, S + 1) bin edges (ray-distance metres);
     weights (R, S); color (R, 3) in [0, 1]; opacity (R,) = sum of weights; depth (R,)
-    expected ray distance under the normalised weights; depth_var (R,) their variance (m^2).
+    expected ray distance under the normalised weights (what the depth loss trains); depth_var
+    (R,) their variance (m^2); median (R,) their median (the depth renders report).
     """
 
     t: torch.Tensor
@@ -29,6 +30,27 @@ class RayRender:
     opacity: torch.Tensor
     depth: torch.Tensor
     depth_var: torch.Tensor
+
+    @property
+    def median(self) -> torch.Tensor:
+        """(R,) median ray distance of the normalised weights, each bin's weight spread evenly over
+        the bin. The point estimate of least expected absolute error under the ray's distribution:
+        where a ray's weights split between two surfaces (a depth edge, a faint floater) it lies on
+        the heavier one, where the expected depth lies in the empty space between them."""
+        return weight_quantile(self.edges, self.weights, 0.5)
+
+
+def weight_quantile(edges: torch.Tensor, weights: torch.Tensor, q: float) -> torch.Tensor:
+    """(R,) q-quantile (ray distance) of the piecewise-constant PDF of weights (R, S) >= 0 on bins
+    edges (R, S + 1); a ray without weight counts its bins as equally likely."""
+    cdf = torch.cat([torch.zeros_like(weights[:, :1]), weights.cumsum(-1)], -1)
+    total = cdf[:, -1:]
+    cdf = torch.where(total > 0, cdf / total.clamp(min=1e-30), torch.linspace(0, 1, cdf.shape[1], device=cdf.device))
+    u = torch.full_like(total, q)
+    idx = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, cdf.shape[1] - 1)
+    c0, c1 = cdf.gather(1, idx - 1), cdf.gather(1, idx)
+    e0, e1 = edges.gather(1, idx - 1), edges.gather(1, idx)
+    return (e0 + ((u - c0) / (c1 - c0).clamp(min=1e-12)).clamp(0, 1) * (e1 - e0))[:, 0]
 
 
 def render_weights(sigma: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
