@@ -1,4 +1,5 @@
-"""Where the depth-error law's unseen term comes from (open3d_pnerf.error_law.UNSEEN, UNSEEN_RAMP).
+"""Where the depth-error law's unseen and edge terms come from (open3d_pnerf.error_law.UNSEEN,
+UNSEEN_RAMP, EDGE, EDGE_RADIUS).
 
 Trains one reconstruction (the `fast` preset, GT poses, every 4th frame held out, seed 0) on the
 tuning scene, TUM fr1/xyz, and on the held-out frames collects the field's depth error against
@@ -7,7 +8,10 @@ the training frames' observed surfaces, on two pixel sets: the pixels only the m
 sensor-alone mesh misses them) and the pixels both cover. Then tabulates, for a grid of (unseen,
 unseen_ramp), the share of errors inside the law's 99.7% interval and the mean negative
 log-likelihood on both sets: the chosen values should hold 99% where only the model covers and
-leave the common pixels' calibration as it was. `--dataset 7scenes` checks the choice elsewhere.
+leave the common pixels' calibration as it was. Then the same for a grid of (edge, radius) with
+the unseen term at its default: the range of the rendered depths within `radius` (pixels of a
+320-pixel-wide image) of each pixel, times `edge`, added to sigma (the least widening that holds
+99% where only the model covers is the choice). `--dataset 7scenes` checks the choices elsewhere.
 
     python benchmarks/bench_unseen.py [--dataset tum] [--name unseen]
 
@@ -24,14 +28,20 @@ from pathlib import Path
 import numpy as np
 from bench_suite import OUT, load, machine, poses_for
 
+from open3d_pnerf.error_law import GAUSSIAN_SHARES
+
 UNSEEN = (0.0, 0.2, 0.3, 0.5)
 RAMPS = (0.01, 0.02, 0.05)
+EDGES = (0.0, 0.1, 0.2, 0.3, 0.5)
+RADII = (1, 2, 4)  # pixels of a 320-pixel-wide image
 
 
 def collect(dataset: str) -> tuple[dict, object]:
-    """{set: {err, sigma (law without the unseen term), z, distance}} over the held-out frames."""
+    """{set: {err, sigma (law without the unseen and edge terms), z, distance, jump_<r> for r in
+    RADII}} over the held-out frames."""
     import open3d_pnerf as pn
     from open3d_pnerf.camera import backproject
+    from open3d_pnerf.error_law import depth_jump
     from open3d_pnerf.evaluation import heldout_views
     from open3d_pnerf.export import sensor_geometry
 
@@ -41,29 +51,34 @@ def collect(dataset: str) -> tuple[dict, object]:
     cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, seed=0, progress=False)
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     law, observed = recon.depth_error, recon.observed
-    recon.observed = None  # renders with the law's sigma alone; distances computed here
+    recon.observed = None  # renders with the law's sigma alone; distances and jumps computed here
+    recon.depth_error = dataclasses.replace(law, edge=0.0)
     K = seq.scaled_by(cfg.image_scale).K
     rows = {"only": [], "common": []}
     for v in heldout_views(recon, seq, {"sensor": sensor_geometry(recon, seq).mesh}):
         model, gt = v["model"], v["depth"]
         covers = (model["opacity"] >= cfg.export.min_opacity) & (gt > 0)
         hit = v["surfaces"]["sensor"]["hit"]
+        jumps = [depth_jump(model["depth"], r / 320) for r in RADII]
         for name, mask in (("only", covers & ~hit), ("common", covers & hit)):
             points = backproject(model["depth"], K, recon.poses[v["index"]], mask)[0]
             rows[name].append(np.stack([np.abs(model["depth"] - gt)[mask], model["depth_std"][mask],
-                                        model["depth"][mask], observed.distance(points)]))
-    data = {name: dict(zip(("err", "sigma", "z", "distance"), np.concatenate(r, 1))) for name, r in rows.items()}
+                                        model["depth"][mask], observed.distance(points)] + [j[mask] for j in jumps]))
+    keys = ("err", "sigma", "z", "distance", *(f"jump_{r}" for r in RADII))
+    data = {name: dict(zip(keys, np.concatenate(r, 1))) for name, r in rows.items()}
     return data, law
 
 
-def score(data: dict, law, unseen: float, ramp: float) -> dict:
-    """Share within the 99.7% interval and mean NLL of each pixel set under the law with this unseen term."""
-    law = dataclasses.replace(law, unseen=unseen, unseen_ramp=ramp)
+def score(data: dict, law, unseen: float, ramp: float, edge: float = 0.0, radius: int = RADII[0]) -> dict:
+    """Shares within the 68.3% and 99.7% intervals and mean NLL of each pixel set under the law
+    with this unseen term and edge term."""
+    law = dataclasses.replace(law, unseen=unseen, unseen_ramp=ramp, edge=edge)
     spread_free = dataclasses.replace(law, scale=1.0, floor=0.0)  # sigma already holds scale and floor
     out = {}
     for name, d in data.items():
-        sigma = np.sqrt(d["sigma"] ** 2 + spread_free.sigma(0 * d["z"], d["z"], d["distance"]) ** 2)
-        out[name] = {"within_3": float(np.mean(d["err"] <= law.interval(0.9973002039367398) * sigma)),
+        sigma = np.sqrt(d["sigma"] ** 2 + spread_free.sigma(0 * d["z"], d["z"], d["distance"], d[f"jump_{radius}"]) ** 2)
+        out[name] = {"within_1": float(np.mean(d["err"] <= law.interval(GAUSSIAN_SHARES[1]) * sigma)),
+                     "within_3": float(np.mean(d["err"] <= law.interval(GAUSSIAN_SHARES[3]) * sigma)),
                      "nll": float(np.mean(law.nll(d["err"], sigma))), "median_sigma_mm": 1000 * float(np.median(sigma))}
     return out
 
@@ -75,13 +90,15 @@ def main():
     args = ap.parse_args()
     data, law = collect(args.dataset)
     grid = [{"unseen": u, "unseen_ramp": r, **score(data, law, u, r)} for u in UNSEEN for r in (RAMPS if u else RAMPS[:1])]
+    edge_grid = [{"edge": e, "radius_px": r, **score(data, law, law.unseen, law.unseen_ramp, e, r)}
+                 for e in EDGES for r in (RADII if e else RADII[:1])]
     sizes = {name: len(d["err"]) for name, d in data.items()}
     quantiles = {name: {"distance_mm": [1000 * float(q) for q in np.quantile(d["distance"], [0.5, 0.9])],
                         "error_mm": [1000 * float(q) for q in np.quantile(d["err"], [0.5, 0.9])]}
                  for name, d in data.items()}
     result = {"meta": {"dataset": args.dataset, "machine": machine(), "law": {"scale": law.scale, "floor": law.floor,
                                                                              "dof": law.dof}},
-              "pixels": sizes, "quantiles": quantiles, "grid": grid}
+              "pixels": sizes, "quantiles": quantiles, "grid": grid, "edge_grid": edge_grid}
     (OUT / f"{args.name}.json").write_text(json.dumps(result, indent=1))
     lines = [f"{args.dataset}, `fast` preset, GT poses, seed 0, held-out frames; {machine()}. Pixels only the model "
              f"covers: {sizes['only']} (distance to the observed surfaces median / 90%: "
@@ -95,6 +112,14 @@ def main():
         o, c = g["only"], g["common"]
         lines.append(f"| {g['unseen']:g} | {1000 * g['unseen_ramp']:g} | {o['within_3']:.4f} | {o['nll']:.2f} | "
                      f"{o['median_sigma_mm']:.0f} | {c['within_3']:.4f} | {c['nll']:.3f} | {c['median_sigma_mm']:.1f} |")
+    lines += ["", f"The edge term, with the unseen term at its default ({law.unseen:g}, {1000 * law.unseen_ramp:g} mm); "
+              "radius in pixels of a 320-pixel-wide image:", "",
+              "| edge | radius (px) | only: within 68.3% | only: within 99.7% | only: NLL | common: within 68.3% | "
+              "common: within 99.7% | common: NLL | common: median sigma (mm) |", "|" + " --- |" * 9]
+    for g in edge_grid:
+        o, c = g["only"], g["common"]
+        lines.append(f"| {g['edge']:g} | {g['radius_px']} | {o['within_1']:.3f} | {o['within_3']:.4f} | {o['nll']:.2f} | "
+                     f"{c['within_1']:.3f} | {c['within_3']:.4f} | {c['nll']:.3f} | {c['median_sigma_mm']:.1f} |")
     (OUT / f"{args.name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

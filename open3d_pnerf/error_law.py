@@ -3,15 +3,21 @@ calibrated error bar, with its intervals and likelihood, fitted on training fram
 
 The law is a Student-t with `dof` degrees of freedom (inf: a Gaussian) whose 1-sigma equivalent,
 the half-width of its central 68.27%, is sigma = sqrt((scale * spread)^2 + (floor * z)^2 +
-(unseen * z * min(1, d / unseen_ramp))^2) at z-depth z, d metres from the nearest surface the
-training frames' depth observed (:class:`~open3d_pnerf.observed.ObservedSurface`). Depth errors
+(unseen * z * min(1, d / unseen_ramp))^2 + (edge * jump)^2) at z-depth z, d metres from the
+nearest surface the training frames' depth observed (:class:`~open3d_pnerf.observed.ObservedSurface`),
+`jump` the range of the rendered depths around the pixel (:func:`depth_jump`). Depth errors
 are heavy-tailed (most pixels within millimetres, a few on the wrong side of an edge), which a
 Gaussian can only meet by widening every sigma; the relative floor covers errors the spread does
 not see (e.g. a surface between the samples). The unseen term is what the model cannot know from
 its training: where it renders a surface that no training view's depth saw, it is often far off
 (on TUM fr1/xyz's held-out frames, 114 mm at the median and 1.3 m at the 90th percentile where
 only the model covers, with the law's sigma saying 29 mm: benchmarks/bench_unseen.py), so there
-its depth is known only to a share of itself.
+its depth is known only to a share of itself. The edge term is what a view between the training
+views cannot know at a depth edge: which side of it a pixel falls on. Where the model renders an
+observed surface with a narrow spread it can still be wrong by the whole jump (on TUM fr1/xyz the
+misses where only the model covers are 0.1-0.7 m off at 0 mm from an observed surface, beside an
+edge: benchmarks/bench_unseen.py). Both terms are fixed, not fitted: the training pixels the law
+is fitted on are rendered alone, and the model has learned those frames' edges.
 """
 
 from __future__ import annotations
@@ -28,6 +34,13 @@ UNSEEN_RAMP = 0.01
 surfaces. Chosen on TUM fr1/xyz's held-out frames (benchmarks/README.md): of a small grid, the
 one that comes nearest to holding 99% of the errors where only the model covers within its 99.7%
 interval."""
+
+EDGE = 0.1
+EDGE_RADIUS = 2 / 320
+"""The edge term's defaults: a tenth of the range of the rendered depths within 2 pixels of a
+320-pixel-wide image (the radius is this fraction of the image's width). Chosen on TUM fr1/xyz's
+held-out frames (benchmarks/README.md): of a small grid, the least widening that holds 99% of the
+errors where only the model covers within its 99.7% interval."""
 
 GAUSSIAN_SHARES = {1: 0.6826894921370859, 2: 0.9544997361036416, 3: 0.9973002039367398}
 """Share of a Gaussian within k sigma of its mean, k = 1, 2, 3."""
@@ -75,6 +88,16 @@ def standardized_multiple(probability: float, dof: float = np.inf) -> float:
     return float(law.ppf((1 + probability) / 2) * (1 if np.isinf(dof) else np.sqrt((dof - 2) / dof)))
 
 
+def depth_jump(depth: np.ndarray, radius: float = EDGE_RADIUS) -> np.ndarray:
+    """(H, W) range (m) of a rendered z-depth image (H, W) m over the square of half-width
+    max(1, round(radius * W)) pixels around each pixel: 0 on a smooth surface, the step at a depth
+    edge (and within that many pixels of it)."""
+    from scipy import ndimage
+
+    size = 2 * max(1, round(radius * depth.shape[1])) + 1
+    return ndimage.maximum_filter(depth, size, mode="nearest") - ndimage.minimum_filter(depth, size, mode="nearest")
+
+
 def depth_nll(err: np.ndarray, sigma: np.ndarray, dof: float = np.inf) -> np.ndarray:
     """Negative log-likelihood (nats) of depth errors `err` (m) under the law of
     1-sigma-equivalent `sigma` (m) and `dof` degrees of freedom; arrays of one shape, or
@@ -86,23 +109,29 @@ def depth_nll(err: np.ndarray, sigma: np.ndarray, dof: float = np.inf) -> np.nda
 
 @dataclasses.dataclass(frozen=True)
 class DepthErrorLaw:
-    """sigma = sqrt((scale * spread)^2 + (floor * z)^2 + (unseen * z * min(1, d / unseen_ramp))^2),
-    the 1-sigma equivalent of a Student-t with `dof` degrees of freedom (inf: a Gaussian), d the
-    distance (m) to the nearest observed surface. The default (1, 0, inf) takes the spread as it
-    is where the surface was observed."""
+    """sigma = sqrt((scale * spread)^2 + (floor * z)^2 + (unseen * z * min(1, d / unseen_ramp))^2
+    + (edge * jump)^2), the 1-sigma equivalent of a Student-t with `dof` degrees of freedom (inf: a
+    Gaussian), d the distance (m) to the nearest observed surface, jump the local range (m) of the
+    rendered depth (:func:`depth_jump`). The default (1, 0, inf) takes the spread as it is where
+    the surface was observed, away from depth edges."""
 
     scale: float = 1.0
     floor: float = 0.0
     dof: float = np.inf
     unseen: float = UNSEEN
     unseen_ramp: float = UNSEEN_RAMP
+    edge: float = EDGE
 
-    def sigma(self, spread: np.ndarray, depth: np.ndarray, unseen_distance: np.ndarray | None = None) -> np.ndarray:
+    def sigma(self, spread: np.ndarray, depth: np.ndarray, unseen_distance: np.ndarray | None = None,
+              jump: np.ndarray | None = None) -> np.ndarray:
         """The 1-sigma-equivalent error (m) of raw depth spreads (m) at z-depths `depth` (m), their
-        points `unseen_distance` (m) from the nearest observed surface (None: on one)."""
+        points `unseen_distance` (m) from the nearest observed surface (None: on one), with the
+        rendered depth's local range `jump` (m; None: away from any edge); arrays of one shape."""
         var = (self.scale * spread) ** 2 + (self.floor * depth) ** 2
         if unseen_distance is not None:
             var = var + (self.unseen * depth * np.clip(unseen_distance / self.unseen_ramp, 0, 1)) ** 2
+        if jump is not None:
+            var = var + (self.edge * jump) ** 2
         return np.sqrt(var)
 
     def interval(self, probability: float) -> float:
@@ -123,7 +152,8 @@ class DepthErrorLaw:
         a Gaussian, floor 0 and the scale that puts `coverage` of the errors within 1 sigma (right
         at that quantile only). No errors: the default law. The unseen term keeps its defaults,
         fixed during the fit at the pixels' `unseen_distance` (M,) m from the observed surfaces
-        (None: all on them)."""
+        (None: all on them); the edge term keeps its default and is not seen by the fit (pixels
+        rendered alone have no neighbours)."""
         if method not in ("likelihood", "gaussian", "quantile"):
             raise InputError(f"method must be 'likelihood', 'gaussian' or 'quantile', got {method!r}")
         if not err.size:
@@ -137,7 +167,7 @@ class DepthErrorLaw:
     def to_dict(self) -> dict:
         """The law as JSON-ready numbers (dof None for a Gaussian)."""
         return {"scale": self.scale, "floor": self.floor, "dof": None if np.isinf(self.dof) else self.dof,
-                "unseen": self.unseen, "unseen_ramp": self.unseen_ramp}
+                "unseen": self.unseen, "unseen_ramp": self.unseen_ramp, "edge": self.edge}
 
 
 def _quantile_scale(err: np.ndarray, spread: np.ndarray, unseen: np.ndarray, coverage: float) -> float:

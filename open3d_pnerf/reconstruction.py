@@ -21,7 +21,7 @@ from .camera import camera_pose, check_intrinsic, intrinsic_matrix, pose_to_extr
 from .config import ReconstructionConfig
 from .data.nerfstudio import write_nerfstudio
 from .data.sequence import RGBDSequence, check_sequence
-from .error_law import DepthErrorLaw
+from .error_law import DepthErrorLaw, depth_jump
 from .errors import InputError
 from .evaluation import training_depth_errors
 from .export import Geometry
@@ -147,7 +147,8 @@ class Reconstruction:
         median of the ray's termination distribution), depth_std (H, W) m (the spread of the model's depth distribution along each ray, made
         a calibrated 1-sigma error by :attr:`depth_error`; where the rendered point lies away
         from every surface the training frames' depth observed, :attr:`observed`, the law's
-        unseen term widens it to a share of the depth), opacity (H, W) in [0, 1].
+        unseen term widens it to a share of the depth, and beside a depth edge its edge term to
+        a share of the step), opacity (H, W) in [0, 1].
         """
         pose, carried = self._camera(pose)
         intrinsic = check_intrinsic(intrinsic or carried or self.intrinsic)
@@ -156,7 +157,8 @@ class Reconstruction:
         out = self.render_pixels(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float(), chunk)
         unseen = self.unseen_distance(pose, intrinsic_matrix(intrinsic), u.reshape(-1).cpu().numpy(),
                                       v.reshape(-1).cpu().numpy(), out["depth"])
-        out["depth_std"] = self.depth_error.sigma(out["depth_std"], out["depth"], unseen).astype(np.float32)
+        jump = depth_jump(out["depth"].reshape(h, w)).reshape(-1)
+        out["depth_std"] = self.depth_error.sigma(out["depth_std"], out["depth"], unseen, jump).astype(np.float32)
         if frame is not None:
             if not (isinstance(frame, (int, np.integer)) and 0 <= frame < len(self.poses)):
                 raise InputError(f"frame must be a frame index in [0, {len(self.poses)}), got {frame!r}")

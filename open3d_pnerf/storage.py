@@ -26,7 +26,7 @@ from .camera import check_intrinsic, intrinsic_matrix, pinhole
 from .config import ReconstructionConfig
 from .data.open3d_folder import read_open3d_folder, write_sequence
 from .data.trajectories import write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
-from .error_law import UNSEEN, UNSEEN_RAMP, DepthErrorLaw
+from .error_law import EDGE, UNSEEN, UNSEEN_RAMP, DepthErrorLaw
 from .errors import CheckpointError, ConfigError, DatasetError, InputError
 from .export import Geometry, read_mesh_ply, read_point_cloud_ply, write_mesh_ply, write_point_cloud_ply
 from .fields import block_boxes
@@ -240,15 +240,17 @@ def _depth_range(value) -> np.ndarray | None:
 
 def _error_law(value) -> DepthErrorLaw:
     """A saved depth_error: {scale > 0, floor >= 0, dof > 0 or null (a Gaussian)} and, from folders
-    that have them, unseen >= 0 and unseen_ramp > 0 (the defaults otherwise; ValueError if wrong)."""
+    that have them, unseen >= 0, unseen_ramp > 0 and edge >= 0 (the defaults otherwise; ValueError
+    if wrong)."""
     keys = {"scale", "floor", "dof"}
-    if not isinstance(value, dict) or not keys <= set(value) <= keys | {"unseen", "unseen_ramp"}:
-        raise ValueError(f"depth_error {value!r} is not {{scale, floor, dof[, unseen, unseen_ramp]}}")
+    if not isinstance(value, dict) or not keys <= set(value) <= keys | {"unseen", "unseen_ramp", "edge"}:
+        raise ValueError(f"depth_error {value!r} is not {{scale, floor, dof[, unseen, unseen_ramp, edge]}}")
     number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)  # noqa: E731
     scale, floor, dof = value["scale"], value["floor"], value["dof"]
-    unseen, ramp = value.get("unseen", UNSEEN), value.get("unseen_ramp", UNSEEN_RAMP)
+    unseen, ramp, edge = value.get("unseen", UNSEEN), value.get("unseen_ramp", UNSEEN_RAMP), value.get("edge", EDGE)
     if not (number(scale) and scale > 0 and number(floor) and floor >= 0 and (dof is None or number(dof) and dof > 0)
-            and number(unseen) and unseen >= 0 and number(ramp) and ramp > 0):
-        raise ValueError(f"depth_error {value!r}: need scale > 0, floor >= 0, dof > 0 or null, unseen >= 0 and "
-                         "unseen_ramp > 0")
-    return DepthErrorLaw(float(scale), float(floor), np.inf if dof is None else float(dof), float(unseen), float(ramp))
+            and number(unseen) and unseen >= 0 and number(ramp) and ramp > 0 and number(edge) and edge >= 0):
+        raise ValueError(f"depth_error {value!r}: need scale > 0, floor >= 0, dof > 0 or null, unseen >= 0, "
+                         "unseen_ramp > 0 and edge >= 0")
+    return DepthErrorLaw(float(scale), float(floor), np.inf if dof is None else float(dof), float(unseen), float(ramp),
+                         float(edge))

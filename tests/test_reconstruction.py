@@ -547,12 +547,14 @@ def test_depth_std_is_the_scaled_model_spread_with_a_relative_floor(recon):
     law, observed = recon.depth_error, recon.observed
     try:
         recon.observed = None  # the law alone
-        recon.depth_error = DepthErrorLaw(1.0, 0.0)
+        recon.depth_error = DepthErrorLaw(1.0, 0.0, edge=0.0)
         raw = recon.render(pose)
-        recon.depth_error = DepthErrorLaw(2.5, 0.0)
+        recon.depth_error = DepthErrorLaw(2.5, 0.0, edge=0.0)
         scaled = recon.render(pose)
-        recon.depth_error = DepthErrorLaw(2.5, 0.01)
+        recon.depth_error = DepthErrorLaw(2.5, 0.01, edge=0.0)
         floored = recon.render(pose)
+        recon.depth_error = DepthErrorLaw(2.5, 0.01, edge=0.2)
+        edged = recon.render(pose)
         recon.observed, recon.depth_error = observed, law
         widened = recon.render(pose)
     finally:
@@ -560,11 +562,21 @@ def test_depth_std_is_the_scaled_model_spread_with_a_relative_floor(recon):
     np.testing.assert_allclose(scaled["depth_std"], 2.5 * raw["depth_std"], rtol=1e-5)
     np.testing.assert_allclose(floored["depth_std"], np.hypot(2.5 * raw["depth_std"], 0.01 * raw["depth"]), rtol=1e-5)
     np.testing.assert_array_equal(scaled["depth"], raw["depth"])
+    # beside a depth edge, a share of the step: the range of the rendered depth within 2 px at 320 px
+    width = raw["depth"].shape[1]
+    r = max(1, round(2 / 320 * width))
+    padded = np.pad(raw["depth"], r, mode="edge")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (2 * r + 1, 2 * r + 1))
+    jump = windows.max((-2, -1)) - windows.min((-2, -1))
+    np.testing.assert_allclose(edged["depth_std"], np.hypot(floored["depth_std"], 0.2 * jump), rtol=1e-5)
+    step = jump > 0.1
+    assert step.any() and (edged["depth_std"][step] > floored["depth_std"][step]).all()
     # away from what the training frames' depth saw, sigma is at least the distance to it
     K = np.asarray(recon.intrinsic.intrinsic_matrix)
     points = backproject(widened["depth"], K, pose, np.ones_like(widened["depth"], bool))[0]
     distance = recon.observed.distance(points).reshape(widened["depth"].shape)
-    np.testing.assert_allclose(widened["depth_std"], law.sigma(raw["depth_std"], raw["depth"], distance), rtol=1e-5)
+    np.testing.assert_allclose(widened["depth_std"], law.sigma(raw["depth_std"], raw["depth"], distance, jump),
+                               rtol=1e-5)
     far = distance >= law.unseen_ramp
     assert far.any() and (distance == 0).any()  # a briefly trained model: some pixels on what it saw, some off
     assert (widened["depth_std"][far] >= law.unseen * raw["depth"][far] * (1 - 1e-6)).all()
@@ -578,6 +590,23 @@ def test_the_unseen_term_widens_sigma_to_a_share_of_the_depth_away_from_observed
     np.testing.assert_allclose(law.sigma(spread, z, np.zeros(4)), seen)
     d = np.array([0.0, 0.01, 0.02, 5.0])  # on it, half-way up the ramp, at its end, far beyond
     np.testing.assert_allclose(law.sigma(spread, z, d), np.hypot(seen, 0.5 * 2.0 * np.array([0, 0.5, 1, 1])))
+
+
+def test_the_edge_term_widens_sigma_by_a_share_of_the_local_depth_step():
+    from open3d_pnerf.error_law import EDGE, depth_jump
+
+    depth = np.full((6, 640), 2.0)
+    depth[:, 320:] = 3.0  # a 1 m step between columns 319 and 320
+    jump = depth_jump(depth)  # radius 2 / 320 of the width: 4 px at 640 px
+    np.testing.assert_array_equal(np.flatnonzero(jump[0]), np.arange(316, 324))
+    np.testing.assert_allclose(jump[:, 316:324], 1.0)
+    np.testing.assert_array_equal(np.flatnonzero(depth_jump(depth[:, ::2])[0]), np.arange(158, 162))  # 2 px at 320
+    law = DepthErrorLaw(2.0, 0.01, 3.0)
+    spread, z = np.full(3, 0.01), np.full(3, 2.0)
+    seen = law.sigma(spread, z)
+    np.testing.assert_allclose(law.sigma(spread, z, None, np.array([0.0, 0.5, 1.0])),
+                               np.hypot(seen, EDGE * np.array([0.0, 0.5, 1.0])))
+    np.testing.assert_allclose(law.sigma(spread, z, None, np.zeros(3)), seen)
 
 
 def test_likelihood_fit_recovers_the_scale_floor_and_tails_of_known_errors():
@@ -712,7 +741,9 @@ def test_export_renders_at_most_export_max_views(recon, monkeypatch):
 
 def test_a_saved_folder_loads_and_renders_as_the_version_that_wrote_it_did():
     """tests/data/saved_reconstruction (a grid field, its weights written by an earlier version)
-    and that version's render of frame 1: loading and rendering do not drift."""
+    and that version's render of frame 1: loading and rendering do not drift. (Its depth_std was
+    rewritten when the law gained its edge term, the only change; colour, depth and opacity are
+    the earlier version's.)"""
     folder = Path(__file__).parent / "data" / "saved_reconstruction"
     recon = Reconstruction.load(folder)
     assert recon.config.field == "grid" and recon.config.grid.resolutions == (8, 16)
