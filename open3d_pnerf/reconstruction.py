@@ -144,8 +144,9 @@ class Reconstruction:
         frame: index of one of the reconstruction's frames whose camera exposure the colour
         should have (``color_gains[frame]``); None gives the training frames' average exposure.
         Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m (the
-        median of the ray's termination distribution), depth_std (H, W) m (the spread of the model's depth distribution along each ray, made
-        a calibrated 1-sigma error by :attr:`depth_error`; where the rendered point lies away
+        median of the ray's termination distribution), depth_std (H, W) m (the spread of the
+        model's depth distribution along each ray, made a calibrated 1-sigma error by
+        :attr:`depth_error`; where the rendered point lies away
         from every surface the training frames' depth observed, :attr:`observed`, the law's
         unseen term widens it to a share of the depth, and beside a depth edge its edge term to
         a share of the step), opacity (H, W) in [0, 1].

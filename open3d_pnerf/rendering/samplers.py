@@ -82,8 +82,13 @@ def importance(
     r = weights.shape[0]
     base = torch.arange(n, device=w.device, dtype=torch.float32)
     offset = uniform(r, n, w.device, generator) if jitter else torch.full((r, n), 0.5, device=w.device)
-    u = ((base + offset) / n).contiguous()
-    idx = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, cdf.shape[1] - 1)
+    return invert_cdf(edges, cdf, (base + offset) / n)
+
+
+def invert_cdf(edges: torch.Tensor, cdf: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """(R, n) ray distances where a piecewise-linear CDF (R, S + 1), rising from 0 to 1 over the
+    bin edges (R, S + 1), reaches the levels u (R, n) in [0, 1]."""
+    idx = torch.searchsorted(cdf.contiguous(), u.contiguous(), right=True).clamp(1, cdf.shape[1] - 1)
     c0, c1 = cdf.gather(1, idx - 1), cdf.gather(1, idx)
     e0, e1 = edges.gather(1, idx - 1), edges.gather(1, idx)
     frac = ((u - c0) / (c1 - c0).clamp(min=1e-8)).clamp(0, 1)

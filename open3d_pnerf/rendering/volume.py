@@ -10,7 +10,7 @@ from torch.profiler import record_function
 
 from ..settings import FLAG, Settings, count, setting
 from .rays import Rays
-from .samplers import BatchShare, bin_edges, depth_guided, importance, merge, stratified
+from .samplers import BatchShare, bin_edges, depth_guided, importance, invert_cdf, merge, stratified
 
 
 @dataclasses.dataclass
@@ -46,11 +46,7 @@ def weight_quantile(edges: torch.Tensor, weights: torch.Tensor, q: float) -> tor
     cdf = torch.cat([torch.zeros_like(weights[:, :1]), weights.cumsum(-1)], -1)
     total = cdf[:, -1:]
     cdf = torch.where(total > 0, cdf / total.clamp(min=1e-30), torch.linspace(0, 1, cdf.shape[1], device=cdf.device))
-    u = torch.full_like(total, q)
-    idx = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, cdf.shape[1] - 1)
-    c0, c1 = cdf.gather(1, idx - 1), cdf.gather(1, idx)
-    e0, e1 = edges.gather(1, idx - 1), edges.gather(1, idx)
-    return (e0 + ((u - c0) / (c1 - c0).clamp(min=1e-12)).clamp(0, 1) * (e1 - e0))[:, 0]
+    return invert_cdf(edges, cdf, torch.full_like(total, q))[:, 0]
 
 
 def render_weights(sigma: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
