@@ -56,14 +56,17 @@ def geometry_figure(mesh: o3d.geometry.TriangleMesh | None = None, point_cloud: 
     return fig
 
 
-def notebook_view(figure):
+def notebook_view(figure, plotlyjs: str = "inline"):
     """A plotly `figure` as a notebook output that draws wherever the notebook is opened as HTML
-    (nbconvert, nbviewer, a browser with no network): an ``IPython.display.HTML`` with plotly.js
-    inline (about 5 MB), where ``figure.show()`` leaves only plotly's JupyterLab mimetype, which
-    an exported notebook shows blank. Make it a cell's value (or ``display`` it)."""
+    (nbconvert, nbviewer), where ``figure.show()`` leaves only plotly's JupyterLab mimetype, which
+    an exported notebook shows blank: an ``IPython.display.HTML``. plotlyjs: "inline" carries
+    plotly.js inside the output (about 5 MB; draws with no network), "cdn" loads it from plotly's
+    CDN (a few kB; for notebooks kept in a repository). Make it a cell's value (or ``display`` it)."""
     from IPython.display import HTML
 
-    return HTML(figure.to_html(include_plotlyjs=True, full_html=False))
+    if plotlyjs not in ("inline", "cdn"):
+        raise InputError(f"plotlyjs must be 'inline' or 'cdn', got {plotlyjs!r}")
+    return HTML(figure.to_html(include_plotlyjs=True if plotlyjs == "inline" else "cdn", full_html=False))
 
 
 def _rgb(color) -> str:

@@ -32,3 +32,8 @@ def test_notebook_view_carries_plotly_js_for_a_reader_without_network():
     html = notebook_view(geometry_figure(point_cloud=cloud)).data
     assert "Plotly.newPlot" in html and "scatter3d" in html
     assert len(html) > 1_000_000 and not re.search(r"<script[^>]+src=", html)  # plotly.js inline, nothing to download
+    lean = notebook_view(geometry_figure(point_cloud=cloud), plotlyjs="cdn").data
+    assert "Plotly.newPlot" in lean and len(lean) < 100_000
+    assert re.search(r'<script[^>]+src="https://cdn\.plot\.ly/plotly-[\d.]+\.min\.js"', lean)
+    with pytest.raises(InputError, match="plotlyjs must be"):
+        notebook_view(geometry_figure(point_cloud=cloud), plotlyjs=True)
