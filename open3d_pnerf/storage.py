@@ -26,7 +26,7 @@ from .camera import check_intrinsic, intrinsic_matrix, pinhole
 from .config import ReconstructionConfig
 from .data.open3d_folder import read_open3d_folder, write_sequence
 from .data.trajectories import write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
-from .error_law import EDGE, UNSEEN, UNSEEN_RAMP, DepthErrorLaw
+from .error_law import DepthErrorLaw
 from .errors import CheckpointError, ConfigError, DatasetError, InputError
 from .export import Geometry, read_mesh_ply, read_point_cloud_ply, write_mesh_ply, write_point_cloud_ply
 from .fields import block_boxes
@@ -247,7 +247,7 @@ def _error_law(value) -> DepthErrorLaw:
         raise ValueError(f"depth_error {value!r} is not {{scale, floor, dof[, unseen, unseen_ramp, edge]}}")
     number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)  # noqa: E731
     scale, floor, dof = value["scale"], value["floor"], value["dof"]
-    unseen, ramp, edge = value.get("unseen", UNSEEN), value.get("unseen_ramp", UNSEEN_RAMP), value.get("edge", EDGE)
+    unseen, ramp, edge = (value.get(k, getattr(DepthErrorLaw, k)) for k in ("unseen", "unseen_ramp", "edge"))
     if not (number(scale) and scale > 0 and number(floor) and floor >= 0 and (dof is None or number(dof) and dof > 0)
             and number(unseen) and unseen >= 0 and number(ramp) and ramp > 0 and number(edge) and edge >= 0):
         raise ValueError(f"depth_error {value!r}: need scale > 0, floor >= 0, dof > 0 or null, unseen >= 0, "
