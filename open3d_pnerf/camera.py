@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial.transform import Rotation
 
 from .errors import InputError, PoseError
 
@@ -133,32 +134,20 @@ def camera_poses(poses, n: int | None = None, what: str = "poses",
     return poses, check_covariances(carried if covariances is None else covariances, len(poses))
 
 
-# -- rigid motions: kornia's Lie groups, twists ordered [rotation, translation] ------------------
-def _float64(array):
-    import torch
-
-    return torch.as_tensor(np.asarray(array, np.float64))
-
-
+# -- rigid motions: scipy's rotations, twists ordered [rotation, translation] -------------------
+# (scipy rather than a tensor library: the tracker converts one small rotation at a time, and
+# scipy does it in microseconds)
 def rotation_matrix(rotvec) -> np.ndarray:
     """(..., 3, 3) rotation matrices exp([w]x) of rotation vectors w (..., 3) (radians)."""
-    import torch
-    from kornia.geometry.liegroup import So3
-
-    w = _float64(rotvec)
-    with torch.no_grad():
-        return So3.exp(w.reshape(-1, 3)).matrix().reshape(*w.shape[:-1], 3, 3).numpy()
+    w = np.asarray(rotvec, np.float64)
+    return Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(*w.shape[:-1], 3, 3)
 
 
 def rotation_vector(matrix) -> np.ndarray:
     """(..., 3) rotation vectors (radians) of rotation matrices (..., 3, 3): the inverse of
     :func:`rotation_matrix`."""
-    import torch
-    from kornia.geometry.liegroup import So3
-
-    R = _float64(matrix)
-    with torch.no_grad():
-        return So3.from_matrix(R.reshape(-1, 3, 3)).log().reshape(*R.shape[:-2], 3).numpy()
+    R = np.asarray(matrix, np.float64)
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(*R.shape[:-2], 3)
 
 
 def twist_matrix(xi: np.ndarray) -> np.ndarray:
@@ -178,35 +167,25 @@ def matrix_twist(T: np.ndarray) -> np.ndarray:
 
 def quaternion_matrix(wxyz) -> np.ndarray:
     """(..., 3, 3) rotation matrices of quaternions (..., 4) (w, x, y, z), normalised first."""
-    import torch
-    from kornia.geometry.liegroup import So3
-
-    q = _float64(wxyz)
-    q = q / q.norm(dim=-1, keepdim=True)
-    with torch.no_grad():
-        return So3.from_wxyz(q.reshape(-1, 4)).matrix().reshape(*q.shape[:-1], 3, 3).numpy()
+    q = np.asarray(wxyz, np.float64)
+    return Rotation.from_quat(q.reshape(-1, 4)[:, [1, 2, 3, 0]]).as_matrix().reshape(*q.shape[:-1], 3, 3)
 
 
 def matrix_quaternion(matrix) -> np.ndarray:
     """(..., 4) unit quaternions (w, x, y, z) of rotation matrices (..., 3, 3)."""
-    import torch
-    from kornia.geometry.liegroup import So3
-
-    R = _float64(matrix)
-    with torch.no_grad():
-        return So3.from_matrix(R.reshape(-1, 3, 3)).q.data.reshape(*R.shape[:-2], 4).numpy()
+    R = np.asarray(matrix, np.float64)
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()[:, [3, 0, 1, 2]].reshape(*R.shape[:-2], 4)
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
     """(6, 6) adjoint of a 4x4 rigid transform for twists [rotation, translation]:
-    ``T exp(xi) T^-1 = exp(adjoint(T) @ xi)``."""
-    import torch
-    from kornia.geometry.liegroup import Se3
-
-    with torch.no_grad():
-        ad = Se3.from_matrix(_float64(T)[None]).adjoint()[0].numpy()  # kornia's twists: [translation, rotation]
-    swap = np.r_[3:6, 0:3]
-    return ad[np.ix_(swap, swap)]
+    ``T exp(xi) T^-1 = exp(adjoint(T) @ xi)``, i.e. [[R, 0], [[t]x R, R]]."""
+    R, t = T[:3, :3], T[:3, 3]
+    skew = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = ad[3:, 3:] = R
+    ad[3:, :3] = skew @ R
+    return ad
 
 
 # -- pixels and rays (NumPy or torch) ----------------------------------------------------------

@@ -131,7 +131,9 @@ class DepthFrame:
     @classmethod
     def of(cls, depth: np.ndarray, K: np.ndarray, max_depth: float) -> "DepthFrame":
         depth = np.where((depth > 0) & (depth < max_depth), depth, 0.0)
-        return cls(depth, surface_normals(depth, K), np.asarray(K, np.float64), float(max_depth))
+        frame = cls(depth, surface_normals(depth, K), np.asarray(K, np.float64), float(max_depth))
+        frame.samples, frame.depth_normals  # what every registration uses, computed now (prefetching: off the main thread)
+        return frame
 
     @functools.cached_property
     def points(self) -> np.ndarray:
@@ -147,43 +149,61 @@ class DepthFrame:
         mask[stride // 2::stride, stride // 2::stride] = True
         return backproject(self.depth, self.K, mask=mask & (self.depth > 0))
 
+    @functools.cached_property
+    def depth_normals(self) -> np.ndarray:
+        """(H * W, 4): each pixel's depth (zero where it has no normal) and normal, for one look-up
+        of a bilinear cell's corners."""
+        n = self.normals
+        has_normal = (n[..., 0] != 0) | (n[..., 1] != 0) | (n[..., 2] != 0)
+        return np.concatenate([(self.depth * has_normal)[..., None], self.normals], 2).reshape(-1, 4)
+
     def surface_at(self, q: np.ndarray, max_step: float):
         """The surface under camera-frame points q (M, 3), bilinearly interpolated at each point's
-        sub-pixel projection: points m and unit normals n (M, 3); the (M,) mask of those whose
-        four neighbouring pixels all have depth and normals, within max_step (m) or JUMP times the
-        depth of each other (not across a depth discontinuity); `along` (M, 3), the derivative of
-        n . (q - m) with respect to q when m follows the interpolated surface (n itself on a plane
-        that the normals describe exactly); the (M,) sum of the squared interpolation weights
-        (1 on a pixel, 1/4 between four: how much of one pixel's noise the interpolated depth
-        keeps)."""
+        sub-pixel projection, for those points whose four neighbouring pixels all have depth and
+        normals, within max_step (m) or JUMP times the depth of each other (not across a depth
+        discontinuity): their indices into q (K,), points m and unit normals n (K, 3); `along`
+        (K, 3), the derivative of n . (q - m) with respect to q when m follows the interpolated
+        surface (n itself on a plane that the normals describe exactly); the (K,) sum of the squared
+        interpolation weights (1 on a pixel, 1/4 between four: how much of one pixel's noise the
+        interpolated depth keeps)."""
         h, w = self.depth.shape
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
-        ok = q[:, 2] > 1e-6
-        z = np.where(ok, q[:, 2], 1.0)
-        u, v = q[:, 0] / z * fx + cx, q[:, 1] / z * fy + cy
+        z = q[:, 2]
+        ahead = z > 1e-6
+        u = np.divide(q[:, 0], z, out=np.zeros_like(z), where=ahead) * fx + cx
+        v = np.divide(q[:, 1], z, out=np.zeros_like(z), where=ahead) * fy + cy
         u0, v0 = np.floor(u), np.floor(v)
-        ok &= (u0 >= 0) & (u0 < w - 1) & (v0 >= 0) & (v0 < h - 1)
-        corner = np.where(ok, v0 * w + u0, 0).astype(np.int64)
-        corners = np.stack([corner, corner + 1, corner + w, corner + w + 1])  # (4, M): 00, 01 (u + 1), 10, 11
-        a, b = np.where(ok, u - u0, 0.0), np.where(ok, v - v0, 0.0)
-        weights = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b])
-        d = self.depth.ravel()[corners]
-        normals = self.normals.reshape(-1, 3)[corners]
-        ok &= (d > 0).all(0) & (d.max(0) - d.min(0) < np.maximum(max_step, JUMP * d.min(0)))
-        ok &= (np.abs(normals).sum(-1) > 0).all(0)
-        depth = (weights * d).sum(0)
+        index = np.flatnonzero(ahead & (u0 >= 0) & (u0 < w - 1) & (v0 >= 0) & (v0 < h - 1))
+        corner = (v0[index] * w + u0[index]).astype(np.int64)
+        # (4 channels [depth, n], 4 corners (u, v), (u + 1, v), (u, v + 1), (u + 1, v + 1), K)
+        cell = np.take(self.depth_normals, corner + np.array([0, 1, w, w + 1])[:, None], axis=0).transpose(2, 0, 1).copy()
+        d = cell[0]
+        low = np.minimum(np.minimum(d[0], d[1]), np.minimum(d[2], d[3]))
+        high = np.maximum(np.maximum(d[0], d[1]), np.maximum(d[2], d[3]))
+        good = np.flatnonzero((low > 0) & (high - low < np.maximum(max_step, JUMP * low)))
+        index, cell = index[good], cell[:, :, good]
+        d, q, z, u, v = cell[0], q[index], z[index], u[index], v[index]
+        a, b = u - u0[index], v - v0[index]
+        weights = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b])  # (4 corners, K)
+        depth, *normal = (cell * weights).sum(1)
         ray = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], 1)
         m = ray * depth[:, None]
-        n = (weights[..., None] * normals).sum(0)
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        n_ray = (n * ray).sum(1)
+        n = np.stack(normal, 1)
+        n /= np.maximum(np.sqrt(np.einsum("ij,ij->i", n, n)), 1e-12)[:, None]
+        n_ray = np.einsum("ij,ij->i", n, ray)
         slope_u = n_ray * ((d[1] - d[0]) * (1 - b) + (d[3] - d[2]) * b) + n[:, 0] * depth / fx  # n . dm/du
         slope_v = n_ray * ((d[2] - d[0]) * (1 - a) + (d[3] - d[1]) * a) + n[:, 1] * depth / fy  # n . dm/dv
         along = n.copy()  # n - (n . dm/du) du/dq - (n . dm/dv) dv/dq
         along[:, 0] -= slope_u * fx / z
         along[:, 1] -= slope_v * fy / z
         along[:, 2] += (slope_u * fx * q[:, 0] + slope_v * fy * q[:, 1]) / z**2
-        return m, n, ok, along, (weights**2).sum(0)
+        return index, m, n, along, (weights**2).sum(0)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of (K, 3) arrays (np.cross's general broadcasting costs more here)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], 1)
 
 
 def _correspondences(points: np.ndarray, target: DepthFrame, transformation: np.ndarray, inlier_distance: float):
@@ -192,16 +212,16 @@ def _correspondences(points: np.ndarray, target: DepthFrame, transformation: np.
     G (K, 6), the residual's derivative along the interpolated surface itself, and weights (K,),
     the inverse of each residual's variance under the sensor's random noise)."""
     q = points @ transformation[:3, :3].T + transformation[:3, 3]
-    m, n, ok, along, kept = target.surface_at(q, inlier_distance)
+    index, m, n, along, kept = target.surface_at(q, inlier_distance)
+    q = q[index]
     d = q - m
-    ok &= np.einsum("ij,ij->i", d, d) < inlier_distance**2
-    keep = np.flatnonzero(ok)
-    q, n, d, along = q[keep], n[keep], d[keep], along[keep]
-    ray = np.abs((n * q).sum(1)) / q[:, 2]  # the residual per unit of axial (z) noise
-    sigma_q, sigma_m = SENSOR.sigma(q[:, 2]), SENSOR.sigma(m[keep, 2])
-    weight = 1.0 / (ray**2 * (sigma_q**2 + kept[keep] * sigma_m**2))
-    return (keep, (d * n).sum(1), np.concatenate([np.cross(q, n), n], 1),
-            np.concatenate([np.cross(q, along), along], 1), weight)
+    close = np.flatnonzero(np.einsum("ij,ij->i", d, d) < inlier_distance**2)
+    index, q, m, n, d, along, kept = index[close], q[close], m[close], n[close], d[close], along[close], kept[close]
+    ray = np.abs(np.einsum("ij,ij->i", n, q)) / q[:, 2]  # the residual per unit of axial (z) noise
+    sigma_q, sigma_m = SENSOR.sigma(q[:, 2]), SENSOR.sigma(m[:, 2])
+    weight = 1.0 / (ray**2 * (sigma_q**2 + kept * sigma_m**2))
+    return (index, np.einsum("ij,ij->i", d, n), np.concatenate([_cross(q, n), n], 1),
+            np.concatenate([_cross(q, along), along], 1), weight)
 
 
 def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float) -> dict:
@@ -221,8 +241,8 @@ def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarra
             R = transformation[:3, :3]
             p = points[keep]
             nrm, alg = jac[:, 3:] @ R.T, along[:, 3:] @ R.T
-            jac = -np.concatenate([np.cross(p, nrm), nrm], 1)
-            along = -np.concatenate([np.cross(p, alg), alg], 1)
+            jac = -np.concatenate([_cross(p, nrm), nrm], 1)
+            along = -np.concatenate([_cross(p, alg), alg], 1)
         h, w = a.depth.shape
         v, u = np.divmod(flat[keep], w)
         for key, value in zip(("r", "J", "G", "w", "tile"),
