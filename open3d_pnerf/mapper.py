@@ -55,6 +55,10 @@ class _LiveFrames:
         self.name = "stream"
         self.images: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
 
+    def __len__(self) -> int:
+        """Frames received so far (indices from 0; only the kept ones can still be read)."""
+        return max(self.images, default=-1) + 1
+
     def __getitem__(self, index: int) -> Frame:
         if index not in self.images:
             raise InputError(f"stream frame {index} is no longer kept (neither a keyframe nor a held-out frame)")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,9 @@ import open3d as o3d
 import pytest
 from scipy.linalg import expm, logm
 
+from open3d_pnerf.camera import (
+    adjoint, matrix_quaternion, matrix_twist, quaternion_matrix, rotation_matrix, rotation_vector, twist_matrix,
+)
 from open3d_pnerf.data import RGBDSequence, load_sample, load_sequence
 from open3d_pnerf.errors import InputError, PoseError, TrackingError
 from open3d_pnerf.synthetic import camera_path, room_scene
@@ -20,6 +24,7 @@ from open3d_pnerf.tracking import (
     pose_graph_covariances,
     track,
 )
+from open3d_pnerf.tracking.odometry import FrameRegistration
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz"
@@ -78,6 +83,24 @@ def add_loop(graph: registration.PoseGraph, s: int, t: int, seed: int = 1) -> No
     X = np.linalg.inv(poses[t]) @ poses[s]
     info = point_information(np.random.default_rng(seed))
     graph.edges.append(registration.PoseGraphEdge(s, t, X, info, uncertain=True))
+
+
+# -- rigid-motion helpers against the matrix exponential -------------------------------------
+def test_rotations_twists_and_adjoint_agree_with_the_matrix_exponential():
+    rng = np.random.default_rng(7)
+    xi = rng.normal(0, 0.7, 6)
+    T = exp6(rng.normal(0, 0.7, 6))
+    R = expm(hat(np.r_[xi[:3], 0, 0, 0]))[:3, :3]
+    np.testing.assert_allclose(rotation_matrix(xi[:3]), R, atol=1e-12)
+    np.testing.assert_allclose(rotation_vector(R), xi[:3], atol=1e-12)
+    np.testing.assert_allclose(rotation_matrix(np.stack([xi[:3], -xi[:3]]))[1], R.T, atol=1e-12)  # batched
+    np.testing.assert_allclose(matrix_twist(twist_matrix(xi)), xi, atol=1e-12)
+    # T exp(xi) T^-1 = exp(Ad(T) xi)
+    np.testing.assert_allclose(T @ exp6(xi) @ np.linalg.inv(T), exp6(adjoint(T) @ xi), atol=1e-10)
+    q = matrix_quaternion(R)
+    np.testing.assert_allclose(np.linalg.norm(q), 1.0)
+    np.testing.assert_allclose(q[0], np.cos(np.linalg.norm(xi[:3]) / 2), atol=1e-12)  # w first
+    np.testing.assert_allclose(quaternion_matrix(3 * q), R, atol=1e-12)  # normalised first
 
 
 # -- covariance on synthetic graphs ----------------------------------------------------------
@@ -205,6 +228,23 @@ def sample():
 @pytest.fixture(scope="module")
 def sample_trajectory(sample):
     return track(sample, progress=False)
+
+
+def test_a_frame_read_ahead_is_the_frame_read_when_asked(sample):
+    ahead = FrameRegistration(sample)
+    ahead.prefetch(2)
+    ahead.register(1, 0)  # its odometry done, frame 2 is read on the background thread
+    assert isinstance(ahead._cache[2], Future)
+    read_ahead, asked = ahead.image(2), FrameRegistration(sample).image(2)
+    assert read_ahead.valid == asked.valid
+    for name in ("depth", "normals", "depth_normals"):
+        np.testing.assert_array_equal(getattr(read_ahead.geometry, name), getattr(asked.geometry, name))
+    np.testing.assert_array_equal(read_ahead.geometry.samples[0], asked.geometry.samples[0])
+    np.testing.assert_array_equal(read_ahead.rgbd.color.as_tensor().numpy(), asked.rgbd.color.as_tensor().numpy())
+    np.testing.assert_array_equal(read_ahead.rgbd.depth.as_tensor().numpy(), asked.rgbd.depth.as_tensor().numpy())
+    ahead.prefetch(len(sample))  # beyond the sequence: nothing to read
+    ahead.register(2, 1)
+    assert len(sample) not in ahead._cache
 
 
 def test_track_sample_accuracy_and_shapes(sample, sample_trajectory):

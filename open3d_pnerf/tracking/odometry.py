@@ -15,7 +15,9 @@ an initial guess independent of any motion model, for frames that moved too far 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -125,10 +127,12 @@ class PairResult:
 
 
 class FrameRegistration:
-    """Registers frames of one sequence to each other, caching a few recently used images.
+    """Registers frames of one sequence to each other, caching recently used images.
 
     sequence: the RGB-D sequence. max_depth: depth beyond this (m) is ignored. device: an
-    ``o3d.core.Device`` or string such as "CPU:0" / "CUDA:0" (None = CPU:0).
+    ``o3d.core.Device`` or string such as "CPU:0" / "CUDA:0" (None = CPU:0). cache_size: how
+    many frames' images are kept (see :meth:`reserve`). Frames announced by :meth:`prefetch`
+    are read and prepared on a background thread while the caller registers others.
     """
 
     def __init__(self, sequence: RGBDSequence, max_depth: float = 3.0, device=None, cache_size: int = 4):
@@ -140,16 +144,48 @@ class FrameRegistration:
         self.K = sequence.K
         self.odometry_scale = 0.5 if sequence.image_size[1] >= ODOMETRY_HALF_FROM else 1.0
         self.intrinsic = o3d.core.Tensor(np.diag([self.odometry_scale] * 2 + [1.0]) @ self.K)
-        self._cache: OrderedDict[int, _Image] = OrderedDict()
-        self._cache_size = cache_size
+        self._cache: OrderedDict[int, _Image | Future] = OrderedDict()
+        self._wanted: set[int] = set()  # frames to prefetch after the next odometry
+        self.cache_size = cache_size
 
     def image(self, index: int) -> "_Image":
         """Frame `index`: an Open3D tensor RGBD image for the odometry (at half resolution from
         ODOMETRY_HALF_FROM pixels wide: :meth:`register` finishes every registration on the full
         depth images), its valid-depth fraction, and its full-resolution geometry for the refinement."""
-        if index in self._cache:
-            self._cache.move_to_end(index)
-            return self._cache[index]
+        self._wanted.discard(index)
+        if index not in self._cache:
+            self._store(index, self._load(index))
+        self._cache.move_to_end(index)
+        image = self._cache[index]
+        if isinstance(image, Future):  # prefetched: wait for it (its errors are raised here)
+            image = self._cache[index] = image.result()
+        return image
+
+    def prefetch(self, index: int) -> None:
+        """Have frame `index` read and prepared on the background thread while the caller registers
+        others (nothing when it is cached or beyond the sequence). The reading starts when the
+        next registration's Open3D odometry, which uses every core, has finished."""
+        if 0 <= index < len(self.sequence) and index not in self._cache:
+            self._wanted.add(index)
+
+    def _start_prefetching(self) -> None:
+        for index in sorted(self._wanted):
+            self._store(index, _reader().submit(self._load, index))
+        self._wanted.clear()
+
+    def reserve(self, frames: int) -> None:
+        """Let the cache hold `frames` images, as far as FRAME_CACHE_MB allows (loop closures
+        revisit the keyframes pair by pair: each is then read once)."""
+        h, w = self.sequence.image_size
+        fit = int(FRAME_CACHE_MB * 2**20 // (h * w * _BYTES_PER_PIXEL))
+        self.cache_size = max(self.cache_size, min(frames, fit))
+
+    def _store(self, index: int, image) -> None:
+        self._cache[index] = image
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+
+    def _load(self, index: int) -> "_Image":
         frame = self.sequence[index]
         color = np.ascontiguousarray(self.sequence.color_on_depth_grid(frame.color))
         depth = frame.depth
@@ -160,15 +196,12 @@ class FrameRegistration:
         rgbd = o3d.t.geometry.RGBDImage(
             o3d.t.geometry.Image(o3d.core.Tensor(color)), o3d.t.geometry.Image(o3d.core.Tensor(depth))
         ).to(self.device)
-        image = _Image(rgbd, valid, geometry)
-        self._cache[index] = image
-        if len(self._cache) > self._cache_size:
-            self._cache.popitem(last=False)
-        return image
+        return _Image(rgbd, valid, geometry)
 
     def forget(self, index: int) -> None:
         """Drop frame `index`'s cached image (a frame that was taken back and may come again)."""
         self._cache.pop(index, None)
+        self._wanted.discard(index)
 
     def register(
         self,
@@ -209,6 +242,8 @@ class FrameRegistration:
                 **failed, fitness=0.0, inlier_rmse=np.inf, overlap=0.0,
                 message=f"Open3D odometry failed ({str(exc).strip()})",
             )
+        finally:
+            self._start_prefetching()
         quality = refine(src.geometry, tgt.geometry, found, options.inlier_distance_m, options.misregistration_rad)
         transformation = quality.transformation
         moved_m, turned_deg = motion(np.linalg.inv(init if prior is None else prior) @ transformation)
@@ -248,6 +283,19 @@ class _Image:
     rgbd: o3d.t.geometry.RGBDImage
     valid: float
     geometry: DepthFrame
+
+
+_BYTES_PER_PIXEL = 72  # a cached image: depth, normals, depth_normals (float64), the half-resolution RGBD image
+FRAME_CACHE_MB = 512
+"""At most this much memory (MB) holds cached frame images when the cache is enlarged (reserve):
+all keyframes up to 640x480 x 23 frames or 320x240 x 97."""
+
+
+@functools.lru_cache(maxsize=1)
+def _reader() -> ThreadPoolExecutor:
+    """The one background thread that reads and prepares prefetched frames (OpenCV's decoding and
+    NumPy's array work release the GIL, so it runs beside the registration)."""
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="open3d_pnerf-frames")
 
 
 def _cloud(image: _Image) -> np.ndarray:

@@ -203,7 +203,10 @@ def _close_loops(run: "_Run", sequence: RGBDSequence, keyframes: list[int], odom
     pairs = [(s, t) for s, t in loop_closure_candidates(np.stack(run.poses), keyframes, linked, max_distance_m,
                                                          max_angle_deg, per_keyframe) if t >= new_from]
     loop_odometry = loop_odometry or _default_loop_odometry(sequence, odometry)
-    for s, t in tqdm(pairs, desc="loop closures", disable=not progress, leave=False):
+    run.registrar.reserve(len({frame for pair in pairs for frame in pair}))
+    for k, (s, t) in enumerate(tqdm(pairs, desc="loop closures", disable=not progress, leave=False)):
+        for frame in pairs[k + 1] if k + 1 < len(pairs) else ():
+            run.registrar.prefetch(frame)
         run.close_loop(s, t, loop_odometry)
     if any(e.kind == "loop" and e.success for e in run.edges):
         optimize(run.graph)
@@ -317,6 +320,7 @@ class _Run:
     def track_frame(self, i: int) -> None:
         """Add frame i: the best verified registration among the candidates (the first that
         passes and is not suspicious, or all of them when the camera moves fast), else a guess."""
+        self.registrar.prefetch(i + 1)
         passed = self.try_candidates(i)
         if not self.add_registered(i, passed):  # nothing placed it: continue the motion, with a covariance to match
             self.failed_frames.append(i)
