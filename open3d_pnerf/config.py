@@ -41,7 +41,9 @@ class MappingConfig(Settings):
     keyframe_angle_deg: float = setting(10.0, number(0, low_open=True, unit="degrees"))
     """... or turned this far."""
     train_s_per_frame: float = setting(0.05, number(0, unit="seconds"))
-    """Seconds of training after each frame is tracked: the per-frame compute budget (0: none)."""
+    """Seconds of training after each frame is tracked: the per-frame compute budget (0: none). A
+    training step is never cut short: the time a frame's last step runs past its budget is taken
+    from the next frames', so that the stream trains this long per frame on average."""
     finish_s: float = setting(60.0, number(0, unit="seconds"))
     """Training seconds on every keyframe that :meth:`Mapper.finish` gives the map, with the
     learning rate decaying as in an offline reconstruction."""

@@ -106,6 +106,7 @@ class Mapper:
         self.trainer: Trainer | None = None
         self.steps = 0
         self.seconds = {"tracking": 0.0, "targets": 0.0, "training": 0.0}
+        self._overrun = 0.0  # training seconds past the per-frame budget, taken from the next frames'
         self._since_keyframe = 0
         self._resumed: tuple[int, np.ndarray] | None = None  # (kept frames, their covariances) of a resumed map
         self._anchor: int | None = None  # the resumed map's frame the stream was placed from
@@ -164,8 +165,17 @@ class Mapper:
         self.seconds["tracking"] += time.perf_counter() - t0
         if keyframe:
             self._add_keyframe(index)
-        self.train(self.config.mapping.train_s_per_frame)
+        self._train_within_budget()
         return self.run.poses[index].copy(), covariance
+
+    def _train_within_budget(self) -> None:
+        """Train for the per-frame budget less what earlier frames ran past theirs (a step is never
+        cut short), so that the stream trains ``config.mapping.train_s_per_frame`` per frame on average."""
+        allowance = self.config.mapping.train_s_per_frame - self._overrun
+        if allowance <= 0:  # this frame repays an earlier step's overrun
+            self._overrun = -allowance
+        else:
+            self._overrun = max(0.0, self.train(allowance) - allowance)
 
     def _arrays(self, rgbd_image, index: int) -> tuple[np.ndarray, np.ndarray]:
         """(colour uint8 (H, W, 3), depth float32 metres (H, W)) of what add() was given, checked."""
@@ -291,14 +301,17 @@ class Mapper:
             trainer.step = old.step
         self.trainer = trainer
 
-    def train(self, seconds: float) -> None:
-        """Train the map on every keyframe for `seconds` (nothing before the first keyframe)."""
+    def train(self, seconds: float) -> float:
+        """Train the map on every keyframe for `seconds` (nothing before the first keyframe; the
+        last step ends after them); returns the seconds it took."""
         if self.trainer is None or seconds <= 0:
-            return
+            return 0.0
         t0, before = time.perf_counter(), self.trainer.step
         self.trainer.train(seconds=seconds)
         self.steps += self.trainer.step - before
-        self.seconds["training"] += time.perf_counter() - t0
+        used = time.perf_counter() - t0
+        self.seconds["training"] += used
+        return used
 
     def finish(self, seconds: float | None = None, export: bool = True) -> Reconstruction:
         """Train every keyframe for `seconds` more (default ``config.mapping.finish_s``) with the
