@@ -8,8 +8,7 @@ Sections, in one run:
    full (640x480) and half resolution, loop closures on and off: ATE, ms/frame, failed / recovered
    / flagged frames, NEES per dof with its chi-square 95% band, per-axis z-score std, shares of
    per-axis errors within 1 and 2 sigma; the same for the previous release (`--previous`, its fixed
-   ``point_noise_m = 2``) on the same frames, run in a subprocess from a git worktree; then each
-   half of both sequences tracked on its own (SEGMENTS: tuning and report halves);
+   ``point_noise_m = 2``) on the same frames, run in a subprocess from a git worktree;
 2. large motion: the synthetic room (seeds 0-3; 40, 100 and 200 frames around the room, 320x240)
    and 7-Scenes every 10th frame (100 frames, 68 mm / 3.7 deg apart): frames more than 1 cm
    (3 cm on 7-Scenes) from the truth, and those of them that are silently wrong (not covered by
@@ -56,11 +55,6 @@ REAL = {
     "7scenes_150-199": DATA / "7scenes_redkitchen" / "frames_150-199",
 }
 EVERY10 = DATA / "7scenes_redkitchen" / "every10th_0-990"
-SEGMENTS = {"tuning": {"tum_fr1_xyz": (0, 16), "7scenes_150-199": (0, 25)},
-            "report": {"tum_fr1_xyz": (16, 32), "7scenes_150-199": (25, 50)}}
-"""Halves of the real sequences, each tracked on its own: the covariance model's constants
-(misregistration_rad, frame_misregistration_rad) were chosen on the first halves; the second
-halves are the report."""
 OUT = Path(__file__).resolve().parent / "results"
 PREVIOUS = "4dc4fa7"  # the tracker of the release e7fdb54 (4dc4fa7 only restructured it): point_noise_m = 2
 WRONG_NEES = float(chi2.ppf(0.99, 6))  # a frame's 6-dof NEES above this: its covariance does not cover its error
@@ -93,7 +87,7 @@ print("RESULT " + json.dumps({"seconds": seconds, "failed_frames": traj.failed_f
 def tracked(seq, loops: bool, simulated: bool = False):
     """(trajectory, seconds, warning messages) of track() on `seq` (a simulated sensor: no
     misregistration floor)."""
-    options = OdometryOptions(misregistration_rad=0.0, frame_misregistration_rad=0.0) if simulated else OdometryOptions()
+    options = OdometryOptions(misregistration_rad=0.0) if simulated else OdometryOptions()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         start = time.perf_counter()
@@ -142,22 +136,6 @@ def real_section(previous: PreviousRelease, scales) -> dict:
                                         **scores(saved["poses"], saved["covariances"], seq.gt_poses, 0.03)}
                 print(key, {w: {k: out[key][w][k] for k in ("ate_mm", "nees_per_dof", "z_std", "ms_per_frame")}
                             for w in ("new", "previous")}, flush=True)
-    return out
-
-
-def segments_section(scales) -> dict:
-    """This tracker on each half of the real sequences (SEGMENTS), loops on and off."""
-    out = {}
-    for split, cuts in SEGMENTS.items():
-        for name, (a, b) in cuts.items():
-            full = load_sequence(REAL[name]).select(range(a, b))
-            for scale in scales:
-                seq = full if scale == 1 else full.at_scale(scale)
-                for loops in (True, False):
-                    key = f"{split}: {name} frames {a}-{b - 1} {seq.image_size[1]}x{seq.image_size[0]} " \
-                          f"{'loops' if loops else 'odometry only'}"
-                    out[key] = row(seq, *tracked(seq, loops), wrong_m=0.03)
-                    print(key, {k: out[key][k] for k in ("ate_mm", "nees_per_dof", "z_std")}, flush=True)
     return out
 
 
@@ -250,13 +228,6 @@ def markdown(report: dict) -> str:
                      f"{n['z_std']} / {p['z_std']} | {n['within_1']:.2f}, {n['within_2']:.2f} / "
                      f"{p['within_1']:.2f}, {p['within_2']:.2f} | "
                      f"{len(n['recovered'])} / {len(n['flagged'])} / {len(n['failed'])} |")
-    lines += ["", "## Halves of the real sequences, each tracked on its own (the covariance model's constants were chosen "
-              "on the tuning halves; the report halves were looked at by no setting)", "",
-              "| segment, setting | ATE mm | NEES/dof (band) | z std | within 1σ / 2σ | loops kept |",
-              "| --- | --- | --- | --- | --- | --- |"]
-    for key, r in report.get("segments", {}).items():
-        lines.append(f"| {key} | {r['ate_mm']} | {r['nees_per_dof']} ({r['nees_band'][0]:.2f}-{r['nees_band'][1]:.2f}) | "
-                     f"{r['z_std']} | {r['within_1']:.2f} / {r['within_2']:.2f} | {r['loops_kept']} |")
     lines += ["", "## Large motion", "",
               "| sequence | ATE mm | max frame error mm | frames off (>1 cm synthetic, >3 cm 7-Scenes) | "
               "silently wrong | recovered | flagged | failed | NEES/dof | z std |",
@@ -296,13 +267,11 @@ def main() -> None:
     with PreviousRelease(args.previous) as previous:
         if args.quick:
             report["real"] = real_section(previous, (0.5,))
-            report["segments"] = segments_section((0.5,))
             report["large_motion"] = large_motion_section((0,), (40,), 10)
             report["monte_carlo"] = monte_carlo(2)
             report["downstream"] = downstream_section(previous, [(40, 0)])
         else:
             report["real"] = real_section(previous, (1.0, 0.5))
-            report["segments"] = segments_section((1.0, 0.5))
             report["large_motion"] = large_motion_section(range(4), (40, 100, 200), 100)
             report["monte_carlo"] = monte_carlo(args.draws)
             report["downstream"] = downstream_section(previous, [(40, 0), (100, 3)])

@@ -34,6 +34,7 @@ from .pipeline import checked_config
 from .reconstruction import Reconstruction
 from .scene import BOX_MARGIN, scene_box
 from .targets import DepthTargets
+from .tracking.covariance import pose_graph_covariances
 from .tracking.odometry import FrameRegistration, OdometryOptions, motion
 from .camera import adjoint
 from .data.sequence import evenly_spaced
@@ -223,7 +224,8 @@ class Mapper:
         """(len(nodes), 6, 6) covariances of frames `nodes` in the pose graph as it is now; after a
         resume, the kept frames' saved ones, and the others' relative to the map plus the map frame's
         they were placed from (carried along the relative pose, as track_onto does)."""
-        out = self.run.covariances(nodes)
+        graph = pose_graph_covariances(self.run.graph, nodes=nodes)
+        out = graph[nodes]
         if self._resumed is not None:
             kept, saved = self._resumed
             for k, i in enumerate(nodes):

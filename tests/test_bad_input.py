@@ -35,7 +35,6 @@ from open3d_pnerf import (
     track,
     tsdf_fusion,
 )
-from open3d_pnerf.tracking import OdometryOptions
 from open3d_pnerf.training import OptimizerConfig
 from open3d_pnerf.data import read_log_trajectory, write_log_trajectory
 from open3d_pnerf.errors import CheckpointError, ConfigError, DatasetError, InputError, PoseError
@@ -333,8 +332,6 @@ CASES = [
     Case("track-keyframe-every-0", lambda t: memory(), lambda s: track(s, keyframe_every=0, progress=False), InputError,
          ("keyframe_every", ">= 1")),
     Case("track-a-list", lambda t: frames(), lambda p: track(p, progress=False), InputError, ("sequence", "RGBDSequence")),
-    Case("odometry-negative-frame-misregistration", lambda t: None,
-         lambda _: OdometryOptions(frame_misregistration_rad=-1e-3), InputError, ("frame_misregistration_rad", ">= 0")),
     Case("reconstruct-a-single-frame", lambda t: memory(1), lambda s: reconstruct(s, CONFIG, poses=POSES[:1]),
          InputError, ("rgbd_sequence", "at least 2 frames")),
     Case("depth-targets-of-a-list", lambda t: frames(), lambda p: depth_targets(p, poses=POSES, progress=False),

@@ -16,7 +16,7 @@ from open3d_pnerf.tracking import OdometryOptions, consistency_of_errors, pose_e
 from open3d_pnerf.tracking.odometry import FrameRegistration
 from open3d_pnerf.tracking.uncertainty import DepthFrame, fit, refine
 
-SIMULATED = OdometryOptions(misregistration_rad=0.0, frame_misregistration_rad=0.0)  # no calibration or timing error
+SIMULATED = OdometryOptions(misregistration_rad=0.0)  # a simulated sensor has no calibration error
 
 
 @pytest.fixture(scope="module")

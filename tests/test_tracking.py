@@ -339,8 +339,7 @@ def test_fast_motion_frames_are_right_or_flagged_with_a_covariance_that_covers_t
 
     seq = synthetic_sequence(40, 320, 240, seed=2).sequence
     with pytest.warns(UserWarning, match="placed differently from different starts"):
-        traj = track(seq, progress=False,
-                     odometry=OdometryOptions(misregistration_rad=0.0, frame_misregistration_rad=0.0))
+        traj = track(seq, progress=False, odometry=OdometryOptions(misregistration_rad=0.0))
     errors = pose_errors(traj.poses, seq.gt_poses)
     off = np.flatnonzero(np.linalg.norm(errors[:, 3:], axis=1) > 0.01)
     assert traj.failed_frames == [] and traj.flagged_frames
@@ -355,25 +354,6 @@ def test_keyframe_spacing_bounds_the_number_of_keyframes_on_long_sequences():
     assert keyframe_spacing(2000, 5, 200) == 10
     assert len(range(0, 2001, keyframe_spacing(2001, 5, 200))) <= 200
     assert keyframe_spacing(100_000, 5, None) == 5
-
-
-@pytest.mark.parametrize("loops", [False, True])
-def test_a_frame_misregistration_adds_to_every_pose_without_accumulating(sample, loops):
-    """An image that sits off its pose by the same amount in every registration of it: the rotation
-    variance it adds is that of two frames (the frame's own and frame 0's, to which poses are
-    relative) at the chain's end as after one frame, with loop closures or without; the poses
-    are those of the graph without it."""
-    rad = 2e-3
-    base = track(sample, loop_closure=loops, progress=False, odometry=OdometryOptions(frame_misregistration_rad=0.0))
-    traj = track(sample, loop_closure=loops, progress=False, odometry=OdometryOptions(frame_misregistration_rad=rad))
-    np.testing.assert_array_equal(traj.poses, base.poses)
-    added = traj.covariances - base.covariances
-    np.testing.assert_allclose(added[0], 0.0)
-    np.testing.assert_allclose(added[1:, :3, :3], np.broadcast_to(2 * rad**2 * np.eye(3), (len(sample) - 1, 3, 3)),
-                               rtol=1e-6, atol=1e-12)
-    depth = np.median(sample[0].depth[sample[0].depth > 0])
-    translation = np.diagonal(added[1:, 3:, 3:], axis1=1, axis2=2)
-    assert (translation > (rad * depth * 0.7) ** 2).all() and (translation < 2 * (rad * depth * 1.5) ** 2 + 1e-6).all()
 
 
 def test_track_rejects_a_bad_max_keyframes():

@@ -71,17 +71,10 @@ class OdometryOptions:
     search_all_above_deg: float = 5.0
     """See search_all_above_m (degrees)."""
 
-    misregistration_rad: float = 1.5e-3
+    misregistration_rad: float = 3e-3
     """How far (rad; translation: this angle times the median depth) a real sensor's registration
-    of two frames stays off beyond what its residuals show, in a way that adds up along a chain
-    of registrations (calibration, lens distortion). Added to every registration's covariance;
-    0 for a simulated sensor."""
-    frame_misregistration_rad: float = 3e-3
-    """How far (rad; translation: this angle times the frame's median depth) each frame's own
-    image sits off its pose beyond what the residuals show, the same in every registration of
-    that frame, so that it does not add up along a chain (colour/depth timing, rolling shutter,
-    the depth image's own distortion). Added to each pose's covariance (frame 0's carried to
-    every frame, whose poses are relative to it); 0 for a simulated sensor."""
+    stays off beyond what its residuals show: calibration, lens distortion, colour/depth timing,
+    rolling shutter. Added to every registration's covariance; 0 for a simulated sensor."""
 
     def criteria(self) -> list:
         """Open3D convergence criteria, one per pyramid level."""
@@ -96,9 +89,8 @@ class OdometryOptions:
                      "search_all_above_m", "search_all_above_deg"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("misregistration_rad", "frame_misregistration_rad"):
-            if not getattr(self, name) >= 0:
-                raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not self.misregistration_rad >= 0:
+            raise InputError(f"misregistration_rad must be >= 0, got {self.misregistration_rad!r}")
         if not 0 <= self.min_overlap <= 1:
             raise InputError(f"min_overlap must be in [0, 1], got {self.min_overlap!r}")
         if not 0 < self.min_valid_depth <= 1:
@@ -126,8 +118,6 @@ class PairResult:
     """Source pixels with a correspondence after alignment (of the refinement's samples)."""
     covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.full((6, 6), np.inf))
     """(6, 6) covariance of the transformation from its residuals (uncertainty.fit)."""
-    depth_m: float = np.nan
-    """Median depth of the source's samples with a correspondence (m)."""
     init: str = ""
     """Which initial guess the registration started from."""
     odometry_transformation: np.ndarray | None = None
@@ -277,7 +267,6 @@ class FrameRegistration:
             residual_rms=quality.residual_rms,
             inliers=quality.inliers,
             covariance=quality.covariance,
-            depth_m=quality.depth_m,
             init=init_name,
             odometry_transformation=found,
         )

@@ -16,7 +16,6 @@ from ..settings import FLAG, Settings, setting
 from .color import ColorOffsets
 from .covariance import pose_graph_covariances
 from .odometry import FrameRegistration, OdometryOptions, PairResult, motion
-from .uncertainty import misregistration_covariance
 from .posegraph import add_edge, loop_closure_candidates, optimize
 from .trajectory import Edge, Trajectory
 
@@ -99,10 +98,7 @@ def track(
        it neither depends on the processing resolution nor counts correlated pixels as
        independent), plus ``odometry.misregistration_rad`` for what a real sensor's calibration
        leaves; a loop closure's is LOOP_INFLATION times larger (its images are already in the
-       chain). Each pose's covariance then gains its own frame's misregistration
-       (``odometry.frame_misregistration_rad``: an image that sits off its pose in every
-       registration of it, which no loop closure averages away and no chain accumulates) and
-       frame 0's, carried to it.
+       chain).
     4. Colour cameras (``color_poses``, when the colour is registered to the depth): Open3D's
        hybrid answer for each frame from the frame before it (its intensity term dominates, so it
        fits the colour images) is kept beside the refined one, and every frame's colour-camera
@@ -221,7 +217,7 @@ def _trajectory(run: "_Run", sequence: RGBDSequence) -> Trajectory:
     """The Trajectory of a finished run: the graph's poses, their covariances, the registration log,
     and the colour cameras' offsets when the run measured them."""
     poses = np.stack([np.asarray(node.pose, dtype=np.float64) for node in run.graph.nodes])
-    covariances = run.covariances()
+    covariances = pose_graph_covariances(run.graph)
     return Trajectory(
         poses=poses,
         covariances=covariances,
@@ -259,8 +255,6 @@ class _Run:
         self.options = options
         self.colors = colors  # gathers the colour relative poses of consecutive frames, when given
         self.poses = [np.eye(4)] if known_poses is None else list(known_poses)
-        self.known = 0 if known_poses is None else len(known_poses)  # frames whose poses were given
-        self.depths: dict[int, float] = {}  # median depth (m) of the registration that placed each frame
         self.graph = o3d.pipelines.registration.PoseGraph()
         for pose in self.poses:
             self.graph.nodes.append(o3d.pipelines.registration.PoseGraphNode(pose))
@@ -380,7 +374,6 @@ class _Run:
         else:
             self.residuals.append(result.residual_rms)
         self.registered.append(i)
-        self.depths[i] = result.depth_m
         pose = self.poses[source] @ np.linalg.inv(result.transformation)
         spread = self.disagreement(pose, source, result.transformation, passed)
         if spread.any() and i not in self.flagged_frames:
@@ -446,33 +439,6 @@ class _Run:
                                                  message="residual far above the sequence's registrations")
         elif result.success:
             self.add_edge(s, t, result.transformation, LOOP_INFLATION * result.covariance, uncertain=True)
-
-    def covariances(self, nodes: list[int] | None = None) -> np.ndarray:
-        """(len(nodes), 6, 6) covariances of frames `nodes` (default: all) in the pose graph as it is
-        now: the graph's marginals plus each new frame's own misregistration
-        (``options.frame_misregistration_rad``, at the depth of the registration that placed it);
-        without known poses, frame 0's too, carried to every later frame (poses are relative to it)."""
-        nodes = list(range(len(self.poses))) if nodes is None else list(nodes)
-        out = pose_graph_covariances(self.graph, nodes=nodes)[nodes]
-        rad = self.options.frame_misregistration_rad
-        if rad == 0 or not self.depths:
-            return out
-        placed = sorted(self.depths)
-
-        def own(i: int) -> np.ndarray:  # a frame no registration placed: the nearest placed frame's depth
-            j = min(placed, key=lambda k: (abs(k - i), k))
-            return misregistration_covariance(rad, self.depths[j])
-
-        origin = own(0) if self.known == 0 else None
-        first = np.asarray(self.graph.nodes[0].pose)
-        for k, i in enumerate(nodes):
-            if i < max(self.known, 1):
-                continue
-            out[k] += own(i)
-            if origin is not None:
-                ad = adjoint(np.linalg.inv(np.asarray(self.graph.nodes[i].pose)) @ first)
-                out[k] += ad @ origin @ ad.T
-        return out
 
     def mark_pruned_loops(self) -> None:
         """Flag the loop closures that global optimisation pruned as unsuccessful."""

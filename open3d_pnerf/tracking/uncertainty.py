@@ -66,8 +66,7 @@ class Fit:
     overlap: fraction of the source's valid sampled pixels with an inlier correspondence;
     residual_rms: RMS point-to-plane residual of the inliers (m); inliers: their number;
     covariance: (6, 6) sandwich covariance of the transformation ([rotation, translation],
-    left perturbation in the target camera frame), infinite diagonal when degenerate;
-    depth_m: the median depth of the inlier source samples (m; NaN without inliers).
+    left perturbation in the target camera frame), infinite diagonal when degenerate.
     """
 
     transformation: np.ndarray
@@ -75,7 +74,6 @@ class Fit:
     residual_rms: float
     inliers: int
     covariance: np.ndarray
-    depth_m: float = np.nan
     bread: np.ndarray = dataclasses.field(repr=False, default=None)
     """(6, 6) A^-1, the inverse of the Newton matrix (refine's steps)."""
 
@@ -302,7 +300,7 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float) -> F
     overlap = inliers / max(res["samples"], 1)
     failed = np.full((6, 6), np.inf)
     if inliers < MIN_INLIERS:
-        return Fit(transformation, overlap, np.inf, inliers, failed, bread=failed)
+        return Fit(transformation, overlap, np.inf, inliers, failed, failed)
     rms = float(np.sqrt(np.mean(res["forward"]**2)))
     terms = res["J"] * (res["w"] * res["r"])[:, None]
     used, tile = np.unique(res["tile"], return_inverse=True)
@@ -311,14 +309,8 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float) -> F
     try:
         bread = np.linalg.inv(res["J"].T @ (res["G"] * res["w"][:, None]))
     except np.linalg.LinAlgError:
-        return Fit(transformation, overlap, rms, inliers, failed, bread=failed)
+        return Fit(transformation, overlap, rms, inliers, failed, failed)
     covariance = RESIDUAL_INFLATION**2 * (bread @ meat @ bread.T)
     depth = float(np.median(res["depth"]))
-    covariance += misregistration_covariance(misregistration_rad, depth)
-    return Fit(transformation, overlap, rms, inliers, 0.5 * (covariance + covariance.T), depth, bread)
-
-
-def misregistration_covariance(rad: float, depth_m: float) -> np.ndarray:
-    """(6, 6) diagonal covariance [rotation, translation] of a misregistration of `rad` about each
-    axis and `rad` times `depth_m` (m) along each: a rotation's displacement at that depth."""
-    return np.diag([rad**2] * 3 + [(rad * depth_m) ** 2] * 3)
+    covariance += np.diag([misregistration_rad**2] * 3 + [(misregistration_rad * depth) ** 2] * 3)
+    return Fit(transformation, overlap, rms, inliers, 0.5 * (covariance + covariance.T), bread)
