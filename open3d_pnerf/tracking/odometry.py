@@ -288,7 +288,7 @@ class _Image:
 _BYTES_PER_PIXEL = 72  # a cached image: depth, normals, depth_normals (float64), the half-resolution RGBD image
 FRAME_CACHE_MB = 512
 """At most this much memory (MB) holds cached frame images when the cache is enlarged (reserve):
-all keyframes up to 640x480 x 23 frames or 320x240 x 97."""
+all keyframes up to 24 frames at 640x480 or 97 at 320x240."""
 
 
 @functools.lru_cache(maxsize=1)
