@@ -173,12 +173,13 @@ class FrameRegistration:
             self._store(index, _reader().submit(self._load, index))
         self._wanted.clear()
 
-    def reserve(self, frames: int) -> None:
-        """Let the cache hold `frames` images, as far as FRAME_CACHE_MB allows (loop closures
-        revisit the keyframes pair by pair: each is then read once)."""
-        h, w = self.sequence.image_size
-        fit = int(FRAME_CACHE_MB * 2**20 // (h * w * _BYTES_PER_PIXEL))
-        self.cache_size = max(self.cache_size, min(frames, fit))
+    def reserve(self, frames: list[int]) -> None:
+        """Let the cache hold the images of `frames` (loop closures revisit the keyframes pair by
+        pair: each is then read once), as many as FRAME_CACHE_MB holds of images the size of the
+        first one's."""
+        if frames:
+            fit = int(FRAME_CACHE_MB * 2**20 // self.image(frames[0]).nbytes)
+            self.cache_size = max(self.cache_size, min(len(frames), fit))
 
     def _store(self, index: int, image) -> None:
         self._cache[index] = image
@@ -284,11 +285,17 @@ class _Image:
     valid: float
     geometry: DepthFrame
 
+    @property
+    def nbytes(self) -> int:
+        """Memory (bytes) of the arrays it holds: the geometry's (those computed so far) and the RGBD image."""
+        arrays = [a for a in vars(self.geometry).values() if isinstance(a, np.ndarray)] + list(self.geometry.samples)
+        tensors = (self.rgbd.color.as_tensor(), self.rgbd.depth.as_tensor())
+        return sum(a.nbytes for a in arrays) + sum(t.num_elements() * t.dtype.byte_size() for t in tensors)
 
-_BYTES_PER_PIXEL = 72  # a cached image: depth, normals, depth_normals (float64), the half-resolution RGBD image
+
 FRAME_CACHE_MB = 512
 """At most this much memory (MB) holds cached frame images when the cache is enlarged (reserve):
-all keyframes up to 24 frames at 640x480 or 97 at 320x240."""
+28 frames at 640x480, 108 at 320x240 (62-64 bytes per pixel)."""
 
 
 @functools.lru_cache(maxsize=1)

@@ -203,7 +203,7 @@ def _close_loops(run: "_Run", sequence: RGBDSequence, keyframes: list[int], odom
     pairs = [(s, t) for s, t in loop_closure_candidates(np.stack(run.poses), keyframes, linked, max_distance_m,
                                                          max_angle_deg, per_keyframe) if t >= new_from]
     loop_odometry = loop_odometry or _default_loop_odometry(sequence, odometry)
-    run.registrar.reserve(len({frame for pair in pairs for frame in pair}))
+    run.registrar.reserve(sorted({frame for pair in pairs for frame in pair}))
     for k, (s, t) in enumerate(tqdm(pairs, desc="loop closures", disable=not progress, leave=False)):
         for frame in pairs[k + 1] if k + 1 < len(pairs) else ():
             run.registrar.prefetch(frame)

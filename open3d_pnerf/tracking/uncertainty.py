@@ -200,12 +200,6 @@ class DepthFrame:
         return index, m, n, along, (weights**2).sum(0)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross products of (K, 3) arrays (np.cross's general broadcasting costs more here)."""
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], 1)
-
-
 def _correspondences(points: np.ndarray, target: DepthFrame, transformation: np.ndarray, inlier_distance: float):
     """Inlier correspondences of source points (M, 3) moved by `transformation`: (index into points,
     residuals r (K,), Jacobians J (K, 6) of the point-to-plane residual against the plane (m, n),
@@ -220,8 +214,8 @@ def _correspondences(points: np.ndarray, target: DepthFrame, transformation: np.
     ray = np.abs(np.einsum("ij,ij->i", n, q)) / q[:, 2]  # the residual per unit of axial (z) noise
     sigma_q, sigma_m = SENSOR.sigma(q[:, 2]), SENSOR.sigma(m[:, 2])
     weight = 1.0 / (ray**2 * (sigma_q**2 + kept * sigma_m**2))
-    return (index, np.einsum("ij,ij->i", d, n), np.concatenate([_cross(q, n), n], 1),
-            np.concatenate([_cross(q, along), along], 1), weight)
+    return (index, np.einsum("ij,ij->i", d, n), np.concatenate([np.cross(q, n), n], 1),
+            np.concatenate([np.cross(q, along), along], 1), weight)
 
 
 def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float) -> dict:
@@ -241,8 +235,8 @@ def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarra
             R = transformation[:3, :3]
             p = points[keep]
             nrm, alg = jac[:, 3:] @ R.T, along[:, 3:] @ R.T
-            jac = -np.concatenate([_cross(p, nrm), nrm], 1)
-            along = -np.concatenate([_cross(p, alg), alg], 1)
+            jac = -np.concatenate([np.cross(p, nrm), nrm], 1)
+            along = -np.concatenate([np.cross(p, alg), alg], 1)
         h, w = a.depth.shape
         v, u = np.divmod(flat[keep], w)
         for key, value in zip(("r", "J", "G", "w", "tile"),
