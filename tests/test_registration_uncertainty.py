@@ -14,9 +14,10 @@ from open3d_pnerf.camera import intrinsic_matrix
 from open3d_pnerf.synthetic import DepthNoise, camera_path, room_scene, synthetic_sequence
 from open3d_pnerf.tracking import OdometryOptions, consistency_of_errors, pose_errors, track
 from open3d_pnerf.tracking.odometry import FrameRegistration
-from open3d_pnerf.tracking.uncertainty import DepthFrame, fit, refine
+from open3d_pnerf.errors import InputError
+from open3d_pnerf.tracking.uncertainty import DepthFrame, fit, motion_rad, refine
 
-SIMULATED = OdometryOptions(misregistration_rad=0.0)  # a simulated sensor has no calibration error
+SIMULATED = OdometryOptions().without_misregistration()  # a simulated sensor
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +57,35 @@ def test_refine_recovers_a_known_shift_and_fit_scores_it(room):
     assert good.usable and good.overlap > 0.9
     assert 0.001 < good.residual_rms < 0.0025  # 2 mm of source noise, projected on the normals
     assert bad.residual_rms > 2 * good.residual_rms
+
+
+def test_misregistration_floor_grows_with_the_motion(room):
+    """The floor's rotation std is misregistration_rad + misregistration_per_motion * motion, the
+    motion being the rotation angle plus the translation over the depth; the residuals' part is
+    the same whatever the floor."""
+    _, intrinsic, depth = room
+    K = intrinsic_matrix(intrinsic)
+    frame = DepthFrame.of(depth, K, 10.0)
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.from_rotvec([0.0, 0.02, 0.0]).as_matrix()  # 20 mrad, no translation
+    moved = np.eye(4)
+    moved[:3, 3] = [0.0, 0.0, 0.05]
+    assert motion_rad(turned, 2.0) == pytest.approx(0.02)
+    assert motion_rad(moved, 2.0) == pytest.approx(0.025)
+    a, k = 1.5e-3, 0.05
+    without = fit(frame, frame, turned, 0.03)
+    constant = fit(frame, frame, turned, 0.03, a)
+    growing = fit(frame, frame, turned, 0.03, a, k)
+    np.testing.assert_allclose(np.diag(constant.covariance - without.covariance)[:3], a**2)
+    np.testing.assert_allclose(np.diag(growing.covariance - without.covariance)[:3], (a + k * 0.02) ** 2)
+    depth_ratio = np.diag(growing.covariance - without.covariance)[3:] / (a + k * 0.02) ** 2  # median depth^2
+    assert np.ptp(depth_ratio) < 1e-9 and 1.0 < np.sqrt(depth_ratio[0]) < 5.0
+
+
+@pytest.mark.parametrize("name", ["misregistration_rad", "misregistration_per_motion"])
+def test_a_negative_misregistration_is_refused(name):
+    with pytest.raises(InputError, match=f"{name} must be >= 0"):
+        OdometryOptions(**{name: -1e-3})
 
 
 def test_covariance_holds_for_noise_correlated_over_blocks(room):

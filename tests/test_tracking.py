@@ -339,7 +339,7 @@ def test_fast_motion_frames_are_right_or_flagged_with_a_covariance_that_covers_t
 
     seq = synthetic_sequence(40, 320, 240, seed=2).sequence
     with pytest.warns(UserWarning, match="placed differently from different starts"):
-        traj = track(seq, progress=False, odometry=OdometryOptions(misregistration_rad=0.0))
+        traj = track(seq, progress=False, odometry=OdometryOptions().without_misregistration())
     errors = pose_errors(traj.poses, seq.gt_poses)
     off = np.flatnonzero(np.linalg.norm(errors[:, 3:], axis=1) > 0.01)
     assert traj.failed_frames == [] and traj.flagged_frames

@@ -71,10 +71,20 @@ class OdometryOptions:
     search_all_above_deg: float = 5.0
     """See search_all_above_m (degrees)."""
 
-    misregistration_rad: float = 3e-3
+    misregistration_rad: float = 1.5e-3
     """How far (rad; translation: this angle times the median depth) a real sensor's registration
-    stays off beyond what its residuals show: calibration, lens distortion, colour/depth timing,
-    rolling shutter. Added to every registration's covariance; 0 for a simulated sensor."""
+    of two frames stays off beyond what its residuals show when the camera has not moved between
+    them: calibration, lens distortion. Added to every registration's covariance; 0 for a
+    simulated sensor."""
+    misregistration_per_motion: float = 0.05
+    """What the misregistration grows by per radian of motion between the two frames (rotation
+    angle plus translation over the median depth): colour/depth timing, rolling shutter and motion
+    blur leave a registration off in proportion to how far the camera moved. 0 for a simulated
+    sensor."""
+
+    def without_misregistration(self) -> "OdometryOptions":
+        """These options for a simulated sensor: no calibration, timing or rolling-shutter error."""
+        return dataclasses.replace(self, misregistration_rad=0.0, misregistration_per_motion=0.0)
 
     def criteria(self) -> list:
         """Open3D convergence criteria, one per pyramid level."""
@@ -89,8 +99,9 @@ class OdometryOptions:
                      "search_all_above_m", "search_all_above_deg"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        if not self.misregistration_rad >= 0:
-            raise InputError(f"misregistration_rad must be >= 0, got {self.misregistration_rad!r}")
+        for name in ("misregistration_rad", "misregistration_per_motion"):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 0 <= self.min_overlap <= 1:
             raise InputError(f"min_overlap must be in [0, 1], got {self.min_overlap!r}")
         if not 0 < self.min_valid_depth <= 1:
@@ -245,7 +256,8 @@ class FrameRegistration:
             )
         finally:
             self._start_prefetching()
-        quality = refine(src.geometry, tgt.geometry, found, options.inlier_distance_m, options.misregistration_rad)
+        quality = refine(src.geometry, tgt.geometry, found, options.inlier_distance_m, options.misregistration_rad,
+                         options.misregistration_per_motion)
         transformation = quality.transformation
         moved_m, turned_deg = motion(np.linalg.inv(init if prior is None else prior) @ transformation)
         message = ""

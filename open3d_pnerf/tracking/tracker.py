@@ -96,9 +96,10 @@ def track(
        sub-pixel point-to-plane refinement both ways, and its covariance estimated from its
        residuals (:mod:`~open3d_pnerf.tracking.uncertainty`: cluster-robust over image tiles, so
        it neither depends on the processing resolution nor counts correlated pixels as
-       independent), plus ``odometry.misregistration_rad`` for what a real sensor's calibration
-       leaves; a loop closure's is LOOP_INFLATION times larger (its images are already in the
-       chain).
+       independent), plus a misregistration floor for what a real sensor's calibration leaves
+       (``odometry.misregistration_rad``) and what grows with the motion between the two frames,
+       colour/depth timing and rolling shutter (``odometry.misregistration_per_motion``); a loop
+       closure's is LOOP_INFLATION times larger (its images are already in the chain).
     4. Colour cameras (``color_poses``, when the colour is registered to the depth): Open3D's
        hybrid answer for each frame from the frame before it (its intensity term dominates, so it
        fits the colour images) is kept beside the refined one, and every frame's colour-camera

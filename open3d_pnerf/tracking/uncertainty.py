@@ -37,7 +37,7 @@ import functools
 import numpy as np
 
 
-from ..camera import backproject, twist_matrix
+from ..camera import backproject, rotation_vector, twist_matrix
 from ..targets.noise import SensorNoise
 
 TILES = (16, 12)  # columns x rows of the source image's clusters
@@ -54,7 +54,11 @@ RESIDUAL_INFLATION = 1.3
 """The sandwich covariance's standard deviations times this: the sub-pixel association leaves a
 bias that no residual shows."""
 JUMP = 0.05  # neighbouring depths further apart than this fraction of the depth: a discontinuity
-STOP_FRACTION = 0.1  # refine stops when a step is below this fraction of the answer's standard deviation
+STOP_FRACTION = 0.15
+"""refine stops before a step below this fraction of the answer's standard deviation on every axis.
+0.1 until the misregistration floor grew with the motion, which made the floor of slow frames
+smaller and their refinement 15% slower (7-Scenes 150-199 at 320x240); 0.15 takes as long as before
+(benchmarks/README.md)."""
 MAX_RATIO = 0.8  # steps are extrapolated (refine) when each is 0 to this fraction of the one before
 
 
@@ -246,10 +250,11 @@ def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarra
 
 
 def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
-           misregistration_rad: float = 0.0, iterations: int = 6) -> Fit:
+           misregistration_rad: float = 0.0, misregistration_per_motion: float = 0.0, iterations: int = 6) -> Fit:
     """`transformation` (4, 4, source camera -> target camera) refined by Newton steps of the
     weighted point-to-plane alignment both ways with sub-pixel association (the root of
-    sum_i w_i J_i r_i = 0); stops before a step below STOP_FRACTION of the answer's own standard deviation on every axis.
+    sum_i w_i J_i r_i = 0); stops before a step below STOP_FRACTION of the answer's own standard
+    deviation on every axis (its covariance: see :func:`_fit`).
     Returns the :class:`Fit` of the answer (iterations=0: of `transformation` itself, see :func:`fit`).
 
     On real depth the Newton matrix overstates the curvature (the slopes of the interpolated
@@ -260,7 +265,7 @@ def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, i
     previous = None
     for k in range(iterations + 1):
         res = _residuals(source, target, T, inlier_distance)
-        result = _fit(T, res, misregistration_rad)
+        result = _fit(T, res, misregistration_rad, misregistration_per_motion)
         if k == iterations or not result.usable:
             break
         step = -result.bread @ (res["J"].T @ (res["w"] * res["r"]))
@@ -275,21 +280,30 @@ def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, i
 
 
 def fit(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
-        misregistration_rad: float = 0.0) -> Fit:
+        misregistration_rad: float = 0.0, misregistration_per_motion: float = 0.0) -> Fit:
     """The :class:`Fit` of `transformation` (4, 4, source camera -> target camera) between two
     frames, as it is (:func:`refine` without a step)."""
-    return refine(source, target, transformation, inlier_distance, misregistration_rad, iterations=0)
+    return refine(source, target, transformation, inlier_distance, misregistration_rad, misregistration_per_motion,
+                  iterations=0)
 
 
-def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float) -> Fit:
+def motion_rad(transformation: np.ndarray, depth: float) -> float:
+    """How far a (4, 4) relative pose moves the image, as an angle (rad): its rotation angle plus
+    its translation over the scene's `depth` (m)."""
+    return float(np.linalg.norm(rotation_vector(transformation[:3, :3])) + np.linalg.norm(transformation[:3, 3]) / depth)
+
+
+def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misregistration_per_motion: float) -> Fit:
     """The Fit of `transformation` from its residuals (:func:`_residuals`).
 
     Its covariance is RESIDUAL_INFLATION^2 times the sandwich estimate of the root of
     sum_i w_i J_i r_i = 0 (what :func:`refine` solves), A^-1 B A^-T with A = sum_i w_i J_i G_i^T
     (G_i: the residual's derivative with m following the interpolated surface; J_i alone would
     take the noisy normals for the surface's slope), plus the misregistration floor: rotation
-    std `misregistration_rad` about each axis and translation std that angle times the median
-    inlier depth (what a real sensor's calibration and colour/depth timing leave and no residual shows)."""
+    std `misregistration_rad + misregistration_per_motion * motion_rad(transformation)` about each
+    axis and translation std that angle times the median inlier depth (what a real sensor's
+    calibration leaves, and its colour/depth timing and rolling shutter, which grow with the
+    motion: no residual shows them)."""
     inliers = len(res["forward"])
     overlap = inliers / max(res["samples"], 1)
     failed = np.full((6, 6), np.inf)
@@ -306,5 +320,6 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float) -> F
         return Fit(transformation, overlap, rms, inliers, failed, failed)
     covariance = RESIDUAL_INFLATION**2 * (bread @ meat @ bread.T)
     depth = float(np.median(res["depth"]))
-    covariance += np.diag([misregistration_rad**2] * 3 + [(misregistration_rad * depth) ** 2] * 3)
+    rad = misregistration_rad + misregistration_per_motion * motion_rad(transformation, depth)
+    covariance += np.diag([rad**2] * 3 + [(rad * depth) ** 2] * 3)
     return Fit(transformation, overlap, rms, inliers, 0.5 * (covariance + covariance.T), bread)
