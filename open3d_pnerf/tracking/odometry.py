@@ -77,10 +77,11 @@ class OdometryOptions:
     them: calibration, lens distortion. Added to every registration's covariance; 0 for a
     simulated sensor."""
     misregistration_per_motion: float = 0.05
-    """What the misregistration grows by per radian of motion between the two frames (rotation
-    angle plus translation over the median depth): colour/depth timing, rolling shutter and motion
-    blur leave a registration off in proportion to how far the camera moved. 0 for a simulated
-    sensor."""
+    """What the misregistration grows by per radian of the camera's motion while it takes the two
+    frames (each frame's step from its neighbour: rotation angle plus translation over the median
+    depth; for consecutive frames, their registration's own motion): colour/depth timing, rolling
+    shutter and motion blur leave a registration off in proportion to how fast the camera moved.
+    0 for a simulated sensor."""
 
     def without_misregistration(self) -> "OdometryOptions":
         """These options for a simulated sensor: no calibration, timing or rolling-shutter error."""
@@ -223,12 +224,16 @@ class FrameRegistration:
         options: OdometryOptions = OdometryOptions(),
         init_name: str = "",
         prior: np.ndarray | None = None,
+        frame_steps: list[np.ndarray] | None = None,
     ) -> PairResult:
         """Align frame `source` to frame `target`, starting from `init` (4x4, source->target).
 
         prior: the expected transformation (4x4) that the plausible-motion limits are measured
         from (default: `init`), so that a guess from elsewhere (a global registration) is held
-        to the same motion limits as the motion model. Never raises for bad data: a failed registration comes back with success=False,
+        to the same motion limits as the motion model. frame_steps: the two frames' own steps (each
+        a (4, 4) relative pose from its neighbour frame) when they are not consecutive: what the
+        misregistration floor grows with (uncertainty.refine; None: the registration's own motion).
+        Never raises for bad data: a failed registration comes back with success=False,
         the initial guess as its transformation and the reason in ``message``.
         """
         init = np.eye(4) if init is None else np.asarray(init, dtype=np.float64)
@@ -257,7 +262,7 @@ class FrameRegistration:
         finally:
             self._start_prefetching()
         quality = refine(src.geometry, tgt.geometry, found, options.inlier_distance_m, options.misregistration_rad,
-                         options.misregistration_per_motion)
+                         options.misregistration_per_motion, frame_steps=frame_steps)
         transformation = quality.transformation
         moved_m, turned_deg = motion(np.linalg.inv(init if prior is None else prior) @ transformation)
         message = ""

@@ -23,10 +23,10 @@ PINNED_VARIANCE = 1e-10
 """Variance (rad^2, m^2) of the edges that pin known poses to frame 0 when tracking onto a map
 (:func:`track_onto`): the optimisation leaves them where they are."""
 
-LOOP_INFLATION = 9.0
+LOOP_INFLATION = 16.0
 """A loop closure's covariance is this many times its registration's: its two images already
 entered the odometry chain (with the same sensor's systematic errors), so it is not an independent
-measurement."""
+measurement. Chosen on the tuning halves (benchmarks/README.md)."""
 
 
 @dataclasses.dataclass
@@ -97,8 +97,9 @@ def track(
        residuals (:mod:`~open3d_pnerf.tracking.uncertainty`: cluster-robust over image tiles, so
        it neither depends on the processing resolution nor counts correlated pixels as
        independent), plus a misregistration floor for what a real sensor's calibration leaves
-       (``odometry.misregistration_rad``) and what grows with the motion between the two frames,
-       colour/depth timing and rolling shutter (``odometry.misregistration_per_motion``); a loop
+       (``odometry.misregistration_rad``) and what grows with the camera's motion while it takes
+       the two frames, colour/depth timing and rolling shutter (``odometry.misregistration_per_motion``:
+       per radian of each frame's step from its neighbour); a loop
        closure's is LOOP_INFLATION times larger (its images are already in the chain).
     4. Colour cameras (``color_poses``, when the colour is registered to the depth): Open3D's
        hybrid answer for each frame from the frame before it (its intensity term dominates, so it
@@ -271,9 +272,10 @@ class _Run:
         self.guess_covariance = np.diag(limits**2)  # a guessed pose: anywhere within the plausible motion
 
     def register(self, source: int, target: int, kind: str, options: OdometryOptions, init: np.ndarray,
-                 init_name: str, prior: np.ndarray | None = None) -> PairResult:
-        """Register two frames from `init` (source -> target), motion limits around `prior`; log it."""
-        result = self.registrar.register(source, target, init, options, init_name, prior)
+                 init_name: str, prior: np.ndarray | None = None, frame_steps: list[np.ndarray] | None = None) -> PairResult:
+        """Register two frames from `init` (source -> target), motion limits around `prior`, the
+        misregistration floor from `frame_steps` (FrameRegistration.register); log it."""
+        result = self.registrar.register(source, target, init, options, init_name, prior, frame_steps)
         self.edges.append(
             Edge(source, target, kind, result.success, result.fitness, result.inlier_rmse,
                  result.overlap, result.inliers, result.message, result.residual_rms,
@@ -434,7 +436,8 @@ class _Run:
 
     def close_loop(self, s: int, t: int, options: OdometryOptions) -> None:
         """Register keyframe s to keyframe t; add an uncertain edge when it passes every check."""
-        result = self.register(s, t, "loop", options, self.relative(s, t), "loop")
+        steps = [self.relative(k - 1, k) if k else self.relative(1, 0) for k in (s, t)]  # each keyframe's own motion
+        result = self.register(s, t, "loop", options, self.relative(s, t), "loop", frame_steps=steps)
         if result.success and self.suspicious(result):
             self.edges[-1] = dataclasses.replace(self.edges[-1], success=False,
                                                  message="residual far above the sequence's registrations")

@@ -250,11 +250,12 @@ def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarra
 
 
 def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
-           misregistration_rad: float = 0.0, misregistration_per_motion: float = 0.0, iterations: int = 6) -> Fit:
+           misregistration_rad: float = 0.0, misregistration_per_motion: float = 0.0, iterations: int = 6,
+           frame_steps: list[np.ndarray] | None = None) -> Fit:
     """`transformation` (4, 4, source camera -> target camera) refined by Newton steps of the
     weighted point-to-plane alignment both ways with sub-pixel association (the root of
     sum_i w_i J_i r_i = 0); stops before a step below STOP_FRACTION of the answer's own standard
-    deviation on every axis (its covariance: see :func:`_fit`).
+    deviation on every axis (its covariance: see :func:`_fit`; `frame_steps` too).
     Returns the :class:`Fit` of the answer (iterations=0: of `transformation` itself, see :func:`fit`).
 
     On real depth the Newton matrix overstates the curvature (the slopes of the interpolated
@@ -265,7 +266,7 @@ def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, i
     previous = None
     for k in range(iterations + 1):
         res = _residuals(source, target, T, inlier_distance)
-        result = _fit(T, res, misregistration_rad, misregistration_per_motion)
+        result = _fit(T, res, misregistration_rad, misregistration_per_motion, frame_steps)
         if k == iterations or not result.usable:
             break
         step = -result.bread @ (res["J"].T @ (res["w"] * res["r"]))
@@ -280,11 +281,12 @@ def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, i
 
 
 def fit(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
-        misregistration_rad: float = 0.0, misregistration_per_motion: float = 0.0) -> Fit:
+        misregistration_rad: float = 0.0, misregistration_per_motion: float = 0.0,
+        frame_steps: list[np.ndarray] | None = None) -> Fit:
     """The :class:`Fit` of `transformation` (4, 4, source camera -> target camera) between two
     frames, as it is (:func:`refine` without a step)."""
     return refine(source, target, transformation, inlier_distance, misregistration_rad, misregistration_per_motion,
-                  iterations=0)
+                  iterations=0, frame_steps=frame_steps)
 
 
 def motion_rad(transformation: np.ndarray, depth: float) -> float:
@@ -293,17 +295,21 @@ def motion_rad(transformation: np.ndarray, depth: float) -> float:
     return float(np.linalg.norm(rotation_vector(transformation[:3, :3])) + np.linalg.norm(transformation[:3, 3]) / depth)
 
 
-def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misregistration_per_motion: float) -> Fit:
+def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misregistration_per_motion: float,
+         frame_steps: list[np.ndarray] | None) -> Fit:
     """The Fit of `transformation` from its residuals (:func:`_residuals`).
 
     Its covariance is RESIDUAL_INFLATION^2 times the sandwich estimate of the root of
     sum_i w_i J_i r_i = 0 (what :func:`refine` solves), A^-1 B A^-T with A = sum_i w_i J_i G_i^T
     (G_i: the residual's derivative with m following the interpolated surface; J_i alone would
     take the noisy normals for the surface's slope), plus the misregistration floor: rotation
-    std `misregistration_rad + misregistration_per_motion * motion_rad(transformation)` about each
-    axis and translation std that angle times the median inlier depth (what a real sensor's
-    calibration leaves, and its colour/depth timing and rolling shutter, which grow with the
-    motion: no residual shows them)."""
+    std `misregistration_rad + misregistration_per_motion * m` about each axis and translation
+    std that angle times the median inlier depth (what a real sensor's calibration leaves, and
+    its colour/depth timing and rolling shutter, which grow with the camera's motion while it
+    takes the frames: no residual shows them). m is the mean :func:`motion_rad` of the relative
+    poses in `frame_steps` (each frame's step from the frame before it, for frames that are not
+    consecutive: a loop closure), or of `transformation` itself (None: consecutive frames, whose
+    step it is)."""
     inliers = len(res["forward"])
     overlap = inliers / max(res["samples"], 1)
     failed = np.full((6, 6), np.inf)
@@ -320,6 +326,7 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misr
         return Fit(transformation, overlap, rms, inliers, failed, failed)
     covariance = RESIDUAL_INFLATION**2 * (bread @ meat @ bread.T)
     depth = float(np.median(res["depth"]))
-    rad = misregistration_rad + misregistration_per_motion * motion_rad(transformation, depth)
+    steps = [transformation] if frame_steps is None else frame_steps
+    rad = misregistration_rad + misregistration_per_motion * float(np.mean([motion_rad(T, depth) for T in steps]))
     covariance += np.diag([rad**2] * 3 + [(rad * depth) ** 2] * 3)
     return Fit(transformation, overlap, rms, inliers, 0.5 * (covariance + covariance.T), bread)
