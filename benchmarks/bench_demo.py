@@ -5,7 +5,8 @@ Runs the installed command line, ``open3d-pnerf demo --out <temporary folder>`` 
 sample: tracked poses, the `fast` preset, every 4th frame held out), `--runs` times in a row, and
 reads its report.json: the model's held-out PSNR and SSIM, depth on the pixels every method
 covers, the exported mesh's coverage, the same for the sensor alone and the TSDF, tracking ATE and
-training time. Writes results/<name>.json and .md. Against the result file it replaces (the
+training time; and, from the saved reconstruction, each held-out frame's PSNR and the share of its
+sensor pixels that lie inside some training view's image (the rest no training frame saw). Writes results/<name>.json and .md. Against the result file it replaces (the
 committed one), a held-out PSNR lower by more than --tolerance dB, or a coverage lower by more
 than 0.01, fails the run (exit status 1) and says which; the .md says whether the held-out PSNR
 reaches --target dB.
@@ -51,7 +52,35 @@ def run_demo(out: Path) -> dict:
     scores = report["scores"]
     row = {key: scores[m][k] for key, (m, k) in KEYS.items() if k in scores.get(m, {})}
     return {**row, "ate_rmse_m": report["ate_rmse_m"], "train_s": report["training"]["seconds"],
-            "steps": report["training"]["steps"], "wall_s": round(wall, 1)}
+            "steps": report["training"]["steps"], "wall_s": round(wall, 1), **heldout_frames(out)}
+
+
+def heldout_frames(folder: Path) -> dict:
+    """psnr_frame_<i> (dB) and seen_frame_<i> (the share of its sensor pixels whose surface point
+    projects inside some training frame's image) for each held-out frame i of the demo saved in
+    `folder`, at the training resolution."""
+    from open3d_pnerf import Reconstruction
+    from open3d_pnerf.camera import backproject, project
+    from open3d_pnerf.data import load_sample
+    from open3d_pnerf.evaluation import heldout_views, psnr
+
+    recon = Reconstruction.load(folder)
+    seq = load_sample()
+    scaled = seq.scaled_by(recon.config.image_scale)
+    K, (h, w) = scaled.K, scaled.image_size
+    out = {}
+    for view in heldout_views(recon, seq):
+        i = view["index"]
+        points, _ = backproject(view["depth"], K, recon.poses[i])
+        seen = np.zeros(len(points), bool)
+        for j in recon.train_indices:
+            world_to_camera = np.linalg.inv(recon.poses[j])
+            local = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+            u, v = project(K, local)
+            seen |= (local[:, 2] > 0) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+        out[f"psnr_frame_{i}"] = psnr(view["model"]["color"], view["color"])
+        out[f"seen_frame_{i}"] = float(seen.mean())
+    return out
 
 
 def mean(key: str, runs: list[dict]) -> float:
@@ -89,6 +118,9 @@ def markdown(result: dict) -> str:
     lines = [f"`open3d-pnerf demo` (bundled TUM sample, tracked poses, `fast` preset), {len(runs)} run(s) at commit "
              f"{meta['commit']}; {meta['machine']}.", "", "| | " + " | ".join(f"run {i + 1}" for i in range(len(runs)))
              + " |", "|" + " --- |" * (len(runs) + 1)]
+    frames = sorted(int(k.rsplit("_", 1)[1]) for k in runs[0] if k.startswith("psnr_frame_"))
+    rows[1:1] = [(f"  frame {i}: PSNR (dB) / share of its pixels inside a training view", (f"psnr_frame_{i}", f"seen_frame_{i}"),
+                  1, ".2f") for i in frames]
     for label, keys, factor, fmt in rows:
         keys = keys if isinstance(keys, tuple) else (keys,)
         cells = [" / ".join(format(factor * r[k], fmt) if r.get(k) is not None else "-" for k in keys) for r in runs]
