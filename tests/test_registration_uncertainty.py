@@ -15,7 +15,7 @@ from open3d_pnerf.synthetic import DepthNoise, camera_path, room_scene, syntheti
 from open3d_pnerf.tracking import OdometryOptions, consistency_of_errors, pose_errors, track
 from open3d_pnerf.tracking.odometry import FrameRegistration
 from open3d_pnerf.errors import InputError
-from open3d_pnerf.tracking.uncertainty import DepthFrame, fit, motion_rad, refine
+from open3d_pnerf.tracking.uncertainty import DepthFrame, fit, misregistration_covariance, motion_rad, refine
 
 SIMULATED = OdometryOptions().without_misregistration()  # a simulated sensor
 
@@ -79,7 +79,10 @@ def test_misregistration_floor_grows_with_the_motion(room):
     np.testing.assert_allclose(np.diag(constant.covariance - without.covariance)[:3], a**2)
     np.testing.assert_allclose(np.diag(growing.covariance - without.covariance)[:3], (a + k * 0.02) ** 2)
     depth_ratio = np.diag(growing.covariance - without.covariance)[3:] / (a + k * 0.02) ** 2  # median depth^2
-    assert np.ptp(depth_ratio) < 1e-9 and 1.0 < np.sqrt(depth_ratio[0]) < 5.0
+    assert np.ptp(depth_ratio) < 1e-9 and np.sqrt(depth_ratio[0]) == pytest.approx(growing.depth)
+    np.testing.assert_array_equal(growing.residual_covariance, without.residual_covariance)
+    np.testing.assert_allclose(growing.residual_covariance + misregistration_covariance(a + k * 0.02, growing.depth),
+                               growing.covariance, rtol=1e-12, atol=0)
 
 
 @pytest.mark.parametrize("name", ["misregistration_rad", "misregistration_per_motion"])

@@ -129,7 +129,12 @@ class PairResult:
     inliers: int = 0
     """Source pixels with a correspondence after alignment (of the refinement's samples)."""
     covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.full((6, 6), np.inf))
-    """(6, 6) covariance of the transformation from its residuals (uncertainty.fit)."""
+    """(6, 6) covariance of the transformation from its residuals, with the misregistration floor
+    (uncertainty.fit)."""
+    residual_covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.full((6, 6), np.inf))
+    """(6, 6) the part of `covariance` the residuals show, without the floor."""
+    depth_m: float = np.nan
+    """Median depth of the refinement's inlier correspondences (m)."""
     init: str = ""
     """Which initial guess the registration started from."""
     odometry_transformation: np.ndarray | None = None
@@ -285,6 +290,8 @@ class FrameRegistration:
             residual_rms=quality.residual_rms,
             inliers=quality.inliers,
             covariance=quality.covariance,
+            residual_covariance=quality.residual_covariance,
+            depth_m=quality.depth,
             init=init_name,
             odometry_transformation=found,
         )

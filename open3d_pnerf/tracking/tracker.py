@@ -13,11 +13,12 @@ from ..camera import adjoint, matrix_twist
 from ..data.sequence import RGBDSequence, check_sequence, evenly_spaced
 from ..errors import InputError, TrackingError
 from ..settings import FLAG, Settings, setting
-from .color import ColorOffsets
+from .color import MEASUREMENT_FLOOR_RAD, ColorOffsets
 from .covariance import pose_graph_covariances
 from .odometry import FrameRegistration, OdometryOptions, PairResult, motion
 from .posegraph import add_edge, loop_closure_candidates, optimize
 from .trajectory import Edge, Trajectory
+from .uncertainty import misregistration_covariance
 
 PINNED_VARIANCE = 1e-10
 """Variance (rad^2, m^2) of the edges that pin known poses to frame 0 when tracking onto a map
@@ -385,7 +386,8 @@ class _Run:
         if self.colors is not None and source == i - 1 and result.odometry_transformation is not None:
             back = np.linalg.inv(result.transformation)  # frame i -> i-1, its covariance carried over
             ad = adjoint(back)
-            self.colors.add(i, np.linalg.inv(result.odometry_transformation), back, ad @ result.covariance @ ad.T)
+            noise = result.residual_covariance + misregistration_covariance(MEASUREMENT_FLOOR_RAD, result.depth_m)
+            self.colors.add(i, np.linalg.inv(result.odometry_transformation), back, ad @ noise @ ad.T)
         return True
 
     def add_node(self, i: int, pose: np.ndarray, source: int, transformation: np.ndarray, covariance: np.ndarray,

@@ -80,6 +80,10 @@ class Fit:
     covariance: np.ndarray
     bread: np.ndarray = dataclasses.field(repr=False, default=None)
     """(6, 6) A^-1, the inverse of the Newton matrix (refine's steps)."""
+    residual_covariance: np.ndarray = dataclasses.field(repr=False, default=None)
+    """(6, 6) the part of `covariance` the residuals show (before the misregistration floor)."""
+    depth: float = np.nan
+    """Median depth of the inlier correspondences (m): the misregistration floor's lever arm."""
 
     @property
     def usable(self) -> bool:
@@ -289,6 +293,12 @@ def fit(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inli
                   iterations=0, frame_steps=frame_steps)
 
 
+def misregistration_covariance(rad: float, depth: float) -> np.ndarray:
+    """(6, 6) diagonal covariance [rotation, translation] of a misregistration of `rad` about each
+    axis and that angle times `depth` (m) along each axis."""
+    return np.diag([rad**2] * 3 + [(rad * depth) ** 2] * 3)
+
+
 def motion_rad(transformation: np.ndarray, depth: float) -> float:
     """How far a (4, 4) relative pose moves the image, as an angle (rad): its rotation angle plus
     its translation over the scene's `depth` (m)."""
@@ -314,7 +324,7 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misr
     overlap = inliers / max(res["samples"], 1)
     failed = np.full((6, 6), np.inf)
     if inliers < MIN_INLIERS:
-        return Fit(transformation, overlap, np.inf, inliers, failed, failed)
+        return Fit(transformation, overlap, np.inf, inliers, failed, failed, failed)
     rms = float(np.sqrt(np.mean(res["forward"]**2)))
     terms = res["J"] * (res["w"] * res["r"])[:, None]
     used, tile = np.unique(res["tile"], return_inverse=True)
@@ -323,10 +333,11 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misr
     try:
         bread = np.linalg.inv(res["J"].T @ (res["G"] * res["w"][:, None]))
     except np.linalg.LinAlgError:
-        return Fit(transformation, overlap, rms, inliers, failed, failed)
-    covariance = RESIDUAL_INFLATION**2 * (bread @ meat @ bread.T)
+        return Fit(transformation, overlap, rms, inliers, failed, failed, failed)
+    residual_covariance = RESIDUAL_INFLATION**2 * (bread @ meat @ bread.T)
+    residual_covariance = 0.5 * (residual_covariance + residual_covariance.T)
     depth = float(np.median(res["depth"]))
     steps = [transformation] if frame_steps is None else frame_steps
     rad = misregistration_rad + misregistration_per_motion * float(np.mean([motion_rad(T, depth) for T in steps]))
-    covariance += np.diag([rad**2] * 3 + [(rad * depth) ** 2] * 3)
-    return Fit(transformation, overlap, rms, inliers, 0.5 * (covariance + covariance.T), bread)
+    covariance = residual_covariance + misregistration_covariance(rad, depth)
+    return Fit(transformation, overlap, rms, inliers, covariance, bread, residual_covariance, depth)
