@@ -83,6 +83,13 @@ def test_misregistration_floor_grows_with_the_motion(room):
     np.testing.assert_array_equal(growing.residual_covariance, without.residual_covariance)
     np.testing.assert_allclose(growing.residual_covariance + misregistration_covariance(a + k * 0.02, growing.depth),
                                growing.covariance, rtol=1e-12, atol=0)
+    # frames that did not move while they were taken (a loop closure of two still keyframes): the
+    # constant floor alone, whatever the baseline between them; one moving 50 mm at 2 m: the mean of the two steps
+    still = fit(frame, frame, turned, 0.03, a, k, frame_steps=[np.eye(4), np.eye(4)])
+    np.testing.assert_allclose(np.diag(still.covariance - without.covariance)[:3], a**2)
+    one_moving = fit(frame, frame, turned, 0.03, a, k, frame_steps=[np.eye(4), moved])
+    rad = a + k * 0.5 * (0.05 / one_moving.depth)
+    np.testing.assert_allclose(np.diag(one_moving.covariance - without.covariance)[:3], rad**2)
 
 
 @pytest.mark.parametrize("name", ["misregistration_rad", "misregistration_per_motion"])

@@ -10,14 +10,15 @@ images of consecutive frames: Open3D's hybrid odometry answers, whose intensity 
 on the depth. The colour relative pose is X^c_i = delta_{i-1}^-1 X_i delta_i (X_i the depth cameras'
 relative pose, frame i -> i-1), which with delta_i = exp(a_i) reads, to first order,
 
-    log(X^c_i X_i^-1) = Ad(X_i) a_i - a_{i-1} + noise   (noise: the depth registration's covariance),
+    log(X^c_i X_i^-1) = Ad(X_i) a_i - a_{i-1} + noise   (noise: the depth registration's residual
+                                                        covariance plus MEASUREMENT_FLOOR_RAD),
 
 and with a prior a_i ~ N(0, OFFSET_PRIOR) (which also settles what consecutive frames cannot
 see: an offset common to every frame) all offsets are solved at once by least squares.
 
-Measured: `make demo` (the bundled sample) reaches 24.81 dB held-out PSNR on the colour cameras
-(benchmarks/results/demo.md; 21.48 dB with the depth cameras' poses, the same file at commit
-8696d16), and on TUM fr1/xyz the colour cameras beat the ground-truth poses in every seed and the
+Measured: `make demo` (the bundled sample) reaches 24.69 dB held-out PSNR on the colour cameras
+(benchmarks/results/demo.md, 3 runs; 21.48 dB with the depth cameras' poses, the same file at
+commit 8696d16), and on TUM fr1/xyz the colour cameras beat the ground-truth poses in every seed and the
 depth cameras by 2.7 dB (results/color_poses.md). Refining one pose on colour and depth at once was
 tried first and cost held-out depth (exploratory): one pose cannot fit both images when they were
 taken apart.

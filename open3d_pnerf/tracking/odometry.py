@@ -133,7 +133,7 @@ class PairResult:
     (uncertainty.fit)."""
     residual_covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.full((6, 6), np.inf))
     """(6, 6) the part of `covariance` the residuals show, without the floor."""
-    depth_m: float = np.nan
+    depth: float = np.nan
     """Median depth of the refinement's inlier correspondences (m)."""
     init: str = ""
     """Which initial guess the registration started from."""
@@ -235,9 +235,10 @@ class FrameRegistration:
 
         prior: the expected transformation (4x4) that the plausible-motion limits are measured
         from (default: `init`), so that a guess from elsewhere (a global registration) is held
-        to the same motion limits as the motion model. frame_steps: the two frames' own steps (each
-        a (4, 4) relative pose from its neighbour frame) when they are not consecutive: what the
-        misregistration floor grows with (uncertainty.refine; None: the registration's own motion).
+        to the same motion limits as the motion model. frame_steps: the frames' own steps (each a
+        (4, 4) relative pose from its neighbour frame), what the misregistration floor grows with
+        (uncertainty.refine); None: the registration's own motion, the frames' step when they are
+        consecutive and a bound (the whole baseline) when they are not.
         Never raises for bad data: a failed registration comes back with success=False,
         the initial guess as its transformation and the reason in ``message``.
         """
@@ -291,7 +292,7 @@ class FrameRegistration:
             inliers=quality.inliers,
             covariance=quality.covariance,
             residual_covariance=quality.residual_covariance,
-            depth_m=quality.depth,
+            depth=quality.depth,
             init=init_name,
             odometry_transformation=found,
         )

@@ -266,6 +266,7 @@ class _Run:
         self.flagged_frames: list[int] = []
         self.recovered_frames: list[int] = []
         self.registered = list(range(len(self.poses)))  # frames with a verified incoming registration (or known)
+        self.steps: dict[int, np.ndarray] = {}  # frame i -> its accepted registration from frame i-1 (its own motion)
         self.residuals: list[float] = []  # point-to-plane residual RMS of the accepted odometry registrations
         for j in range(1, len(self.poses)):  # known poses: pinned to frame 0 (the optimisation's fixed node)
             self.add_edge(j, 0, np.linalg.inv(self.poses[0]) @ self.poses[j], PINNED_VARIANCE * np.eye(6))
@@ -383,10 +384,12 @@ class _Run:
         if spread.any() and i not in self.flagged_frames:
             self.flagged_frames.append(i)
         self.add_node(i, pose, source, result.transformation, result.covariance + spread)
+        if source == i - 1:
+            self.steps[i] = result.transformation
         if self.colors is not None and source == i - 1 and result.odometry_transformation is not None:
             back = np.linalg.inv(result.transformation)  # frame i -> i-1, its covariance carried over
             ad = adjoint(back)
-            noise = result.residual_covariance + misregistration_covariance(MEASUREMENT_FLOOR_RAD, result.depth_m)
+            noise = result.residual_covariance + misregistration_covariance(MEASUREMENT_FLOOR_RAD, result.depth)
             self.colors.add(i, np.linalg.inv(result.odometry_transformation), back, ad @ noise @ ad.T)
         return True
 
@@ -436,10 +439,17 @@ class _Run:
                             for (result, _), pose in zip(passed, poses))
         return passed[k], recovered
 
+    def frame_steps(self, *frames: int) -> list[np.ndarray] | None:
+        """The frames' own steps (their accepted registrations from the frame before; frame 0:
+        frame 1's), what a registration of non-consecutive frames grows its misregistration floor
+        with; None when this run registered none of them (then the floor grows with the
+        registration's own motion: a bound, FrameRegistration.register)."""
+        steps = [self.steps[k if k else 1] for k in frames if (k if k else 1) in self.steps]
+        return steps or None
+
     def close_loop(self, s: int, t: int, options: OdometryOptions) -> None:
         """Register keyframe s to keyframe t; add an uncertain edge when it passes every check."""
-        steps = [self.relative(k - 1, k) if k else self.relative(1, 0) for k in (s, t)]  # each keyframe's own motion
-        result = self.register(s, t, "loop", options, self.relative(s, t), "loop", frame_steps=steps)
+        result = self.register(s, t, "loop", options, self.relative(s, t), "loop", frame_steps=self.frame_steps(s, t))
         if result.success and self.suspicious(result):
             self.edges[-1] = dataclasses.replace(self.edges[-1], success=False,
                                                  message="residual far above the sequence's registrations")

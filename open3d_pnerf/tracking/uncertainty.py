@@ -69,8 +69,9 @@ class Fit:
     transformation: (4, 4) source camera -> target camera that the fit is of;
     overlap: fraction of the source's valid sampled pixels with an inlier correspondence;
     residual_rms: RMS point-to-plane residual of the inliers (m); inliers: their number;
-    covariance: (6, 6) sandwich covariance of the transformation ([rotation, translation],
-    left perturbation in the target camera frame), infinite diagonal when degenerate.
+    covariance: (6, 6) covariance of the transformation ([rotation, translation], left
+    perturbation in the target camera frame): the sandwich estimate plus the misregistration
+    floor (:func:`_fit`), infinite diagonal when degenerate.
     """
 
     transformation: np.ndarray
@@ -317,9 +318,9 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misr
     std that angle times the median inlier depth (what a real sensor's calibration leaves, and
     its colour/depth timing and rolling shutter, which grow with the camera's motion while it
     takes the frames: no residual shows them). m is the mean :func:`motion_rad` of the relative
-    poses in `frame_steps` (each frame's step from the frame before it, for frames that are not
-    consecutive: a loop closure), or of `transformation` itself (None: consecutive frames, whose
-    step it is)."""
+    poses in `frame_steps` (each frame's step from the frame before it: for frames that are not
+    consecutive, a loop closure), or of `transformation` itself (None or empty: the frames' step
+    when they are consecutive, a bound when they are not)."""
     inliers = len(res["forward"])
     overlap = inliers / max(res["samples"], 1)
     failed = np.full((6, 6), np.inf)
@@ -337,7 +338,7 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misr
     residual_covariance = RESIDUAL_INFLATION**2 * (bread @ meat @ bread.T)
     residual_covariance = 0.5 * (residual_covariance + residual_covariance.T)
     depth = float(np.median(res["depth"]))
-    steps = [transformation] if frame_steps is None else frame_steps
+    steps = frame_steps or [transformation]
     rad = misregistration_rad + misregistration_per_motion * float(np.mean([motion_rad(T, depth) for T in steps]))
     covariance = residual_covariance + misregistration_covariance(rad, depth)
     return Fit(transformation, overlap, rms, inliers, covariance, bread, residual_covariance, depth)
