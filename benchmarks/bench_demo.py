@@ -6,7 +6,8 @@ sample: tracked poses, the `fast` preset, every 4th frame held out), `--runs` ti
 reads its report.json: the model's held-out PSNR and SSIM, depth on the pixels every method
 covers, the exported mesh's coverage, the same for the sensor alone and the TSDF, tracking ATE and
 training time; and, from the saved reconstruction, each held-out frame's PSNR and the share of its
-sensor pixels that lie inside some training view's image (the rest no training frame saw). Writes results/<name>.json and .md. Against the result file it replaces (the
+sensor pixels that lie inside some training view's image (the rest no training frame saw; occlusion
+is not counted). Writes results/<name>.json and .md. Against the result file it replaces (the
 committed one), a held-out PSNR lower by more than --tolerance dB, or a coverage lower by more
 than 0.01, fails the run (exit status 1) and says which; the .md says whether the held-out PSNR
 reaches --target dB.

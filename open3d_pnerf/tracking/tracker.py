@@ -99,9 +99,10 @@ def track(
        it neither depends on the processing resolution nor counts correlated pixels as
        independent), plus a misregistration floor for what a real sensor's calibration leaves
        (``odometry.misregistration_rad``) and what grows with the camera's motion while it takes
-       the two frames, colour/depth timing and rolling shutter (``odometry.misregistration_per_motion``:
-       per radian of each frame's step from its neighbour); a loop
-       closure's is LOOP_INFLATION times larger (its images are already in the chain).
+       the two frames, colour/depth timing and rolling shutter
+       (``odometry.misregistration_per_motion``, per radian of each frame's step from its
+       neighbour); a loop closure's is LOOP_INFLATION times larger (its images are already in the
+       chain).
     4. Colour cameras (``color_poses``, when the colour is registered to the depth): Open3D's
        hybrid answer for each frame from the frame before it (its intensity term dominates, so it
        fits the colour images) is kept beside the refined one, and every frame's colour-camera
@@ -274,7 +275,8 @@ class _Run:
         self.guess_covariance = np.diag(limits**2)  # a guessed pose: anywhere within the plausible motion
 
     def register(self, source: int, target: int, kind: str, options: OdometryOptions, init: np.ndarray,
-                 init_name: str, prior: np.ndarray | None = None, frame_steps: list[np.ndarray] | None = None) -> PairResult:
+                 init_name: str, prior: np.ndarray | None = None,
+                 frame_steps: list[np.ndarray] | None = None) -> PairResult:
         """Register two frames from `init` (source -> target), motion limits around `prior`, the
         misregistration floor from `frame_steps` (FrameRegistration.register); log it."""
         result = self.registrar.register(source, target, init, options, init_name, prior, frame_steps)

@@ -303,7 +303,8 @@ def misregistration_covariance(rad: float, depth: float) -> np.ndarray:
 def motion_rad(transformation: np.ndarray, depth: float) -> float:
     """How far a (4, 4) relative pose moves the image, as an angle (rad): its rotation angle plus
     its translation over the scene's `depth` (m)."""
-    return float(np.linalg.norm(rotation_vector(transformation[:3, :3])) + np.linalg.norm(transformation[:3, 3]) / depth)
+    angle = np.linalg.norm(rotation_vector(transformation[:3, :3]))
+    return float(angle + np.linalg.norm(transformation[:3, 3]) / depth)
 
 
 def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misregistration_per_motion: float,
