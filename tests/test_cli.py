@@ -181,10 +181,15 @@ def test_the_cli_and_the_python_api_track_the_same_data_the_same_way(tmp_path):
     assert cli.main(args) == 0
     config = pn.ReconstructionConfig.preset("test", max_steps=2, progress=False, **{"tracking.loop_closure": False})
     recon = pn.reconstruct(pn.load_sample().select(range(6)), config)
-    # equal up to the summation order of Open3D's multi-threaded odometry (its last bits vary from run to
-    # run; the refinement after it then ends a few nanometres apart)
-    np.testing.assert_allclose(np.load(out / "poses.npy"), recon.poses, rtol=0, atol=1e-7)
-    np.testing.assert_allclose(np.load(out / "covariances.npy"), recon.covariances, rtol=1e-4, atol=1e-15)
+    # equal up to the summation order of Open3D's multi-threaded odometry: its last bits vary from run to
+    # run, usually leaving the refinement's answers nanometres apart, but now and then they flip one of its
+    # stopping decisions (a step just at a fraction of the answer's sigma), which moves a pose by a fraction
+    # of its sigma (1 mm and 0.04 mrad seen; its covariance by a few per cent): far below the tracker's 3 mm
+    # error, far above a nanometre
+    cli_poses = np.load(out / "poses.npy")
+    delta = np.linalg.inv(recon.poses) @ cli_poses
+    assert np.abs(delta[:, :3, :3] - np.eye(3)).max() < 5e-4 and np.abs(delta[:, :3, 3]).max() < 2e-3
+    np.testing.assert_allclose(np.load(out / "covariances.npy"), recon.covariances, rtol=0.1, atol=1e-15)
     # the setting reached both: with the default loop closures the covariances differ
     default = pn.track(pn.load_sample().select(range(6)), progress=False)
     assert not np.allclose(recon.covariances, default.covariances)
