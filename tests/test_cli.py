@@ -184,8 +184,8 @@ def test_the_cli_and_the_python_api_track_the_same_data_the_same_way(tmp_path):
     # equal up to the summation order of Open3D's multi-threaded odometry: its last bits vary from run to
     # run, usually leaving the refinement's answers nanometres apart, but now and then they flip one of its
     # stopping decisions (a step just at a fraction of the answer's sigma), which moves a pose by a fraction
-    # of its sigma (1 mm and 0.04 mrad seen; its covariance by a few per cent): far below the tracker's 3 mm
-    # error, far above a nanometre
+    # of its sigma (1 mm and 0.04 mrad seen): far below the tracker's 3 mm error, far above a nanometre; the
+    # covariances are held to 10%, where loop closures on and off differ by up to 25% on these frames
     cli_poses = np.load(out / "poses.npy")
     delta = np.linalg.inv(recon.poses) @ cli_poses
     assert np.abs(delta[:, :3, :3] - np.eye(3)).max() < 5e-4 and np.abs(delta[:, :3, 3]).max() < 2e-3
