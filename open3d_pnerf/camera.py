@@ -143,6 +143,12 @@ def rotation_matrix(rotvec) -> np.ndarray:
     return Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(*w.shape[:-1], 3, 3)
 
 
+def motion(T: np.ndarray) -> tuple[float, float]:
+    """(translation in m, rotation angle in degrees) of a 4x4 rigid transform."""
+    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.arccos(cos)))
+
+
 def rotation_vector(matrix) -> np.ndarray:
     """(..., 3) rotation vectors (radians) of rotation matrices (..., 3, 3): the inverse of
     :func:`rotation_matrix`."""

@@ -35,8 +35,8 @@ from .reconstruction import Reconstruction
 from .scene import BOX_MARGIN, scene_box
 from .targets import DepthTargets
 from .tracking.covariance import pose_graph_covariances
-from .tracking.odometry import FrameRegistration, OdometryOptions, motion
-from .camera import adjoint
+from .tracking.odometry import FrameRegistration, OdometryOptions
+from .camera import adjoint, motion
 from .data.sequence import evenly_spaced
 from .tracking.tracker import _close_loops, _Run
 from .training import Trainer

@@ -29,9 +29,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse.linalg import spsolve
 
-from ..camera import adjoint, matrix_twist, twist_matrix
+from ..camera import adjoint, matrix_twist, motion, twist_matrix
 from .covariance import block_matrix
-from .odometry import motion
+from .uncertainty import misregistration_covariance
 
 OFFSET_PRIOR = np.diag([5e-3**2] * 3 + [1e-2**2] * 3)
 """Prior covariance of a colour camera's offset from its depth camera ([rotation rad, translation
@@ -45,6 +45,12 @@ frames (where a colour camera's offset shows most) less cost the bundled sample'
 MAX_DISAGREEMENT = (0.03, 2.0)
 """A colour relative pose further than this (m, degrees) from the depth one is not used (a
 wrong minimum of the photometric alignment, not a colour camera's offset)."""
+
+
+def measurement_noise(residual_covariance: np.ndarray, depth: float) -> np.ndarray:
+    """(6, 6) noise of a colour relative pose measured beside a depth registration: that
+    registration's residual covariance (6, 6) plus MEASUREMENT_FLOOR_RAD at its median depth (m)."""
+    return residual_covariance + misregistration_covariance(MEASUREMENT_FLOOR_RAD, depth)
 
 
 class ColorOffsets:

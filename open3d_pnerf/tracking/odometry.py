@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from ..camera import motion
 from ..data.sequence import RGBDSequence
 from ..errors import InputError
 from .uncertainty import DepthFrame, refine
@@ -363,12 +364,6 @@ def global_registration(source: np.ndarray, target: np.ndarray) -> np.ndarray | 
     if refined.fitness < 0.3:
         return None
     return np.asarray(refined.transformation, np.float64)
-
-
-def motion(T: np.ndarray) -> tuple[float, float]:
-    """(translation in m, rotation angle in degrees) of a 4x4 rigid transform."""
-    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.arccos(cos)))
 
 
 def _device(device) -> o3d.core.Device:

@@ -13,7 +13,8 @@ import numpy as np
 import open3d as o3d
 from scipy.stats import chi2
 
-from .odometry import motion
+from ..camera import motion
+
 
 registration = o3d.pipelines.registration
 

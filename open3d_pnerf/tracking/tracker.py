@@ -9,16 +9,15 @@ import numpy as np
 import open3d as o3d
 from tqdm.auto import tqdm
 
-from ..camera import adjoint, matrix_twist
+from ..camera import adjoint, matrix_twist, motion
 from ..data.sequence import RGBDSequence, check_sequence, evenly_spaced
 from ..errors import InputError, TrackingError
 from ..settings import FLAG, Settings, setting
-from .color import MEASUREMENT_FLOOR_RAD, ColorOffsets
+from .color import ColorOffsets, measurement_noise
 from .covariance import pose_graph_covariances
-from .odometry import FrameRegistration, OdometryOptions, PairResult, motion
+from .odometry import FrameRegistration, OdometryOptions, PairResult
 from .posegraph import add_edge, loop_closure_candidates, optimize
 from .trajectory import Edge, Trajectory
-from .uncertainty import misregistration_covariance
 
 PINNED_VARIANCE = 1e-10
 """Variance (rad^2, m^2) of the edges that pin known poses to frame 0 when tracking onto a map
@@ -388,11 +387,11 @@ class _Run:
         self.add_node(i, pose, source, result.transformation, result.covariance + spread)
         if source == i - 1:
             self.steps[i] = result.transformation
-        if self.colors is not None and source == i - 1 and result.odometry_transformation is not None:
-            back = np.linalg.inv(result.transformation)  # frame i -> i-1, its covariance carried over
-            ad = adjoint(back)
-            noise = result.residual_covariance + misregistration_covariance(MEASUREMENT_FLOOR_RAD, result.depth)
-            self.colors.add(i, np.linalg.inv(result.odometry_transformation), back, ad @ noise @ ad.T)
+            if self.colors is not None and result.odometry_transformation is not None:
+                back = np.linalg.inv(result.transformation)  # frame i -> i-1, its covariance carried over
+                ad = adjoint(back)
+                noise = measurement_noise(result.residual_covariance, result.depth)
+                self.colors.add(i, np.linalg.inv(result.odometry_transformation), back, ad @ noise @ ad.T)
         return True
 
     def add_node(self, i: int, pose: np.ndarray, source: int, transformation: np.ndarray, covariance: np.ndarray,
@@ -446,7 +445,7 @@ class _Run:
         frame 1's), what a registration of non-consecutive frames grows its misregistration floor
         with; None when this run registered none of them (then the floor grows with the
         registration's own motion: a bound, FrameRegistration.register)."""
-        steps = [self.steps[k if k else 1] for k in frames if (k if k else 1) in self.steps]
+        steps = [self.steps[k] for k in (k or 1 for k in frames) if k in self.steps]
         return steps or None
 
     def close_loop(self, s: int, t: int, options: OdometryOptions) -> None:

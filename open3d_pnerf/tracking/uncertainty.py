@@ -37,7 +37,7 @@ import functools
 import numpy as np
 
 
-from ..camera import backproject, rotation_vector, twist_matrix
+from ..camera import backproject, motion, twist_matrix
 from ..targets.noise import SensorNoise
 
 TILES = (16, 12)  # columns x rows of the source image's clusters
@@ -303,8 +303,8 @@ def misregistration_covariance(rad: float, depth: float) -> np.ndarray:
 def motion_rad(transformation: np.ndarray, depth: float) -> float:
     """How far a (4, 4) relative pose moves the image, as an angle (rad): its rotation angle plus
     its translation over the scene's `depth` (m)."""
-    angle = np.linalg.norm(rotation_vector(transformation[:3, :3]))
-    return float(angle + np.linalg.norm(transformation[:3, 3]) / depth)
+    moved_m, turned_deg = motion(transformation)
+    return float(np.radians(turned_deg) + moved_m / depth)
 
 
 def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misregistration_per_motion: float,

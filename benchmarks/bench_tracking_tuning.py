@@ -1,0 +1,133 @@
+"""Where the tracker's covariance constants come from, on the tuning halves only: TUM fr1/xyz
+frames 0-15 and 7-Scenes 150-174, at 640x480 and 320x240, loop closures on and off (the second
+halves, which bench_tracking.py reports, are not looked at here).
+
+1. the misregistration floor (OdometryOptions.misregistration_rad, misregistration_per_motion):
+   NEES per dof and per-axis z-score std of the poses against the ground truth in the 8 settings
+   for a grid of (rad, per motion); the choice is the pair whose worst setting lies nearest 1
+   (the larger of |log NEES| and 2 |log z std|);
+2. LOOP_INFLATION (tracking/tracker.py), loop closures on, the floor at its default: NEES per dof
+   and ATE for each value of a grid;
+3. STOP_FRACTION (tracking/uncertainty.py), a speed setting: the time per frame on 7-Scenes
+   150-199 at 320x240 without loop closures (the setting where it costs most), best of two runs,
+   and the ATE, for each value; run it alone on the machine.
+
+The constants are set on the modules for each run (LOOP_INFLATION, STOP_FRACTION are module
+constants); every other setting is the default.
+
+    python benchmarks/bench_tracking_tuning.py [--name tracking_tuning]
+
+Writes benchmarks/results/<name>.json and .md (about 6 minutes on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+
+import numpy as np
+from bench_suite import OUT, SHARED, machine
+
+from open3d_pnerf.data import load_sequence
+from open3d_pnerf.tracking import (OdometryOptions, absolute_trajectory_error, consistency_of_errors, pose_errors,
+                                   track, tracker, uncertainty)
+
+HALVES = {"TUM fr1/xyz 0-15": (SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz", range(0, 16)),
+          "7-Scenes 150-174": (SHARED / "7scenes_redkitchen" / "frames_150-199", range(0, 25))}
+FLOOR_GRID = [(rad, per) for rad in (1e-3, 1.5e-3, 2e-3, 3e-3) for per in (0.0, 0.02, 0.05, 0.1)]
+LOOP_GRID = (9.0, 16.0, 25.0, 36.0)
+STOP_GRID = (0.1, 0.15)
+
+
+def scored(seq, loops: bool, options: OdometryOptions) -> dict:
+    """NEES per dof, z std and ATE (mm) of track() on `seq`, and its seconds."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        t0 = time.perf_counter()
+        traj = track(seq, loop_closure=loops, progress=False, odometry=options)
+        seconds = time.perf_counter() - t0
+    c = consistency_of_errors(pose_errors(traj.poses, seq.gt_poses)[1:], traj.covariances[1:])
+    return {"nees_per_dof": round(c["nees_per_dof"], 3), "z_std": round(c["z_std"], 3), "seconds": seconds,
+            "ate_mm": round(1000 * absolute_trajectory_error(traj.poses, seq.gt_poses)["rmse"], 2)}
+
+
+def settings(loops_only: bool = False):
+    """(label, sequence, loops) of the tuning halves' settings."""
+    for name, (path, frames) in HALVES.items():
+        half = load_sequence(path).select(frames)
+        for scale in (1.0, 0.5):
+            seq = half if scale == 1 else half.at_scale(scale)
+            for loops in (True,) if loops_only else (True, False):
+                yield f"{name} {seq.image_size[1]}x{seq.image_size[0]} {'loops' if loops else 'odometry'}", seq, loops
+
+
+def worst(rows: dict) -> float:
+    return max(max(abs(np.log(r["nees_per_dof"])), 2 * abs(np.log(r["z_std"]))) for r in rows.values())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--name", default="tracking_tuning")
+    args = ap.parse_args()
+    start = time.perf_counter()
+    report = {"machine": machine(), "floor": {}, "loop_inflation": {}, "stop_fraction": {}}
+    cases = list(settings())
+    for rad, per in FLOOR_GRID:
+        options = OdometryOptions(misregistration_rad=rad, misregistration_per_motion=per)
+        rows = {label: scored(seq, loops, options) for label, seq, loops in cases}
+        report["floor"][f"{rad * 1e3:g} mrad + {per:g} x motion"] = {"worst": round(worst(rows), 3), "rows": rows}
+        print(f"floor {rad * 1e3:g} mrad + {per:g}: worst {worst(rows):.3f}", flush=True)
+    default_inflation = tracker.LOOP_INFLATION
+    try:
+        for inflation in LOOP_GRID:
+            tracker.LOOP_INFLATION = inflation
+            report["loop_inflation"][f"{inflation:g}"] = {label: scored(seq, loops, OdometryOptions())
+                                                         for label, seq, loops in settings(loops_only=True)}
+            print(f"loop inflation {inflation:g}", flush=True)
+    finally:
+        tracker.LOOP_INFLATION = default_inflation
+    default_stop = uncertainty.STOP_FRACTION
+    seq = load_sequence(SHARED / "7scenes_redkitchen" / "frames_150-199").at_scale(0.5)
+    try:
+        for fraction in STOP_GRID:
+            uncertainty.STOP_FRACTION = fraction
+            runs = [scored(seq, False, OdometryOptions()) for _ in range(2)]
+            report["stop_fraction"][f"{fraction:g}"] = {"ms_per_frame": round(1000 * min(r["seconds"] for r in runs)
+                                                                              / len(seq), 1),
+                                                         "ate_mm": runs[0]["ate_mm"]}
+            print(f"stop fraction {fraction:g}: {report['stop_fraction'][f'{fraction:g}']}", flush=True)
+    finally:
+        uncertainty.STOP_FRACTION = default_stop
+    report["minutes"] = round((time.perf_counter() - start) / 60, 1)
+    OUT.mkdir(exist_ok=True)
+    (OUT / f"{args.name}.json").write_text(json.dumps(report, indent=1) + "\n")
+    (OUT / f"{args.name}.md").write_text(markdown(report))
+    print(markdown(report))
+
+
+def markdown(report: dict) -> str:
+    labels = list(next(iter(report["floor"].values()))["rows"])
+    lines = [f"# Tracking constants on the tuning halves ({report['minutes']} min, "
+             f"`python benchmarks/bench_tracking_tuning.py`; {report['machine']})", "",
+             "## Misregistration floor: NEES per dof / z std per setting (worst: max of |log NEES|, 2 |log z std|)", "",
+             "| floor | worst | " + " | ".join(labels) + " |", "|" + " --- |" * (len(labels) + 2)]
+    for key, r in sorted(report["floor"].items(), key=lambda kv: kv[1]["worst"]):
+        lines.append(f"| {key} | {r['worst']} | " + " | ".join(f"{r['rows'][k]['nees_per_dof']} / {r['rows'][k]['z_std']}"
+                                                               for k in labels) + " |")
+    loop_labels = list(next(iter(report["loop_inflation"].values())))
+    lines += ["", "## LOOP_INFLATION (loop closures on): NEES per dof / ATE mm", "",
+              "| inflation | " + " | ".join(loop_labels) + " |", "|" + " --- |" * (len(loop_labels) + 1)]
+    for key, rows in report["loop_inflation"].items():
+        lines.append(f"| {key} | " + " | ".join(f"{rows[k]['nees_per_dof']} / {rows[k]['ate_mm']}" for k in loop_labels)
+                     + " |")
+    lines += ["", "## STOP_FRACTION: 7-Scenes 150-199 at 320x240, odometry only, best of 2 runs", "",
+              "| stop fraction | ms/frame | ATE mm |", "| --- | --- | --- |"]
+    for key, r in report["stop_fraction"].items():
+        lines.append(f"| {key} | {r['ms_per_frame']} | {r['ate_mm']} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
