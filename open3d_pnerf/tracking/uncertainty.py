@@ -57,8 +57,8 @@ JUMP = 0.05  # neighbouring depths further apart than this fraction of the depth
 STOP_FRACTION = 0.15
 """refine stops before a step below this fraction of the answer's standard deviation on every axis.
 0.1 until the misregistration floor grew with the motion, which made the floor of slow frames
-smaller and their refinement 15% slower (7-Scenes 150-199 at 320x240); 0.15 takes as long as before
-(benchmarks/README.md)."""
+smaller and their refinement longer: 40.7 against 37.1 ms a frame with 0.15 on 7-Scenes 150-199 at
+320x240 (results/tracking_tuning.md; benchmarks/README.md)."""
 MAX_RATIO = 0.8  # steps are extrapolated (refine) when each is 0 to this fraction of the one before
 
 
