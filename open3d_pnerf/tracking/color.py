@@ -40,8 +40,8 @@ MEASUREMENT_FLOOR_RAD = 3e-3
 """A colour relative pose's noise is its depth registration's residual covariance plus a constant
 misregistration of this (rad; translation: times the median depth): the photometric answer's own
 error does not grow with the motion as the depth registration's does, and weighing the fast
-frames (where a colour camera's offset shows most) less cost the bundled sample's colour cameras
-0.25 dB of TSDF colour on held-out frames (exploratory). The tracker's former constant floor."""
+frames (where a colour camera's offset shows most) less cost the bundled sample's held-out TSDF
+colour 0.2 dB and the demo 0.5 dB (benchmarks/README.md). The tracker's former constant floor."""
 MAX_DISAGREEMENT = (0.03, 2.0)
 """A colour relative pose further than this (m, degrees) from the depth one is not used (a
 wrong minimum of the photometric alignment, not a colour camera's offset)."""
