@@ -53,13 +53,13 @@ def scored(seq, loops: bool, options: OdometryOptions) -> dict:
             "ate_mm": round(1000 * absolute_trajectory_error(traj.poses, seq.gt_poses)["rmse"], 2)}
 
 
-def settings(loops_only: bool = False):
+def settings():
     """(label, sequence, loops) of the tuning halves' settings."""
     for name, (path, frames) in HALVES.items():
         half = load_sequence(path).select(frames)
         for scale in (1.0, 0.5):
             seq = half if scale == 1 else half.at_scale(scale)
-            for loops in (True,) if loops_only else (True, False):
+            for loops in (True, False):
                 yield f"{name} {seq.image_size[1]}x{seq.image_size[0]} {'loops' if loops else 'odometry'}", seq, loops
 
 
@@ -84,7 +84,7 @@ def main() -> None:
         for inflation in LOOP_GRID:
             tracker.LOOP_INFLATION = inflation
             report["loop_inflation"][f"{inflation:g}"] = {label: scored(seq, loops, OdometryOptions())
-                                                         for label, seq, loops in settings(loops_only=True)}
+                                                         for label, seq, loops in cases if loops}
             print(f"loop inflation {inflation:g}", flush=True)
     finally:
         tracker.LOOP_INFLATION = default_inflation
