@@ -197,7 +197,8 @@ def fit(sequence: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray,
     if base is not None:
         stats["extended"] = [*base.stats.get("extended", []),
                              {"frames_before": len(base.poses), "frames_added": len(poses) - len(base.poses),
-                              "box_grown": bool((aabb != base.aabb).any())}]
+                              "box_grown": bool((aabb != base.aabb).any()), "max_steps": config.max_steps,
+                              "lr": config.optimizer.lr}]
     recon = Reconstruction(model, config, poses, covariances, train_seq.intrinsic, train_idx, hold_idx,
                            timestamps=sequence.timestamps, color_gains=gains, observed=observed,
                            frames=sequence if sequence.has_depth else None, stats=stats)  # what extend() replays
@@ -284,7 +285,9 @@ def extend(base: Reconstruction, sequence: RGBDSequence, config: ReconstructionC
             tracking["ate_rmse_m"] = absolute_trajectory_error(poses[n_old:], sequence.gt_poses)["rmse"]
     timings["tracking_s"] = round(time.perf_counter() - t0, 2)
     stages.update(1)
-    return fit(combined, config, poses, covariances, train_idx, hold_idx, tracking, timings, stages, t0, base=base)
+    recon = fit(combined, config, poses, covariances, train_idx, hold_idx, tracking, timings, stages, t0, base=base)
+    recon.config = map_config(base, config)
+    return recon
 
 
 def extension_config(base: Reconstruction, config: ReconstructionConfig | None) -> ReconstructionConfig:
@@ -303,6 +306,16 @@ def extension_config(base: Reconstruction, config: ReconstructionConfig | None) 
                           f"{config.geometry!r}, {config.field}: {config.field_config}; a map keeps its field "
                           "(reconstruct anew to change it)")
     return config
+
+
+def map_config(base: Reconstruction, config: ReconstructionConfig) -> ReconstructionConfig:
+    """The config an extension of `base` trained with `config` keeps as its own: `config` with base's
+    training schedule (max_steps, time_budget_s, optimizer.lr), so that the next extension's default
+    is again a share of the map's budget and rate, not of the last extension's (which would shrink
+    at every extension: 1500, 750, 375 steps)."""
+    old = base.config
+    return config.replace(max_steps=old.max_steps, time_budget_s=old.time_budget_s,
+                          **{"optimizer.lr": old.optimizer.lr})
 
 
 def continued_field(base: Reconstruction, box: np.ndarray, config: ReconstructionConfig):
