@@ -4,7 +4,7 @@ Per scene and seed, the recording is cut into consecutive segments (each a multi
 so that every 4th frame of each segment is held out both ways). Incremental: `reconstruct` the
 first segment (the `fast` preset, ground-truth poses), then `Reconstruction.extend` it with each
 next segment (its defaults: pipeline.EXTENSION_BUDGET of the map's steps, EXTENSION_LR of its learning
-rate). After each extension, a
+rate; --extension-budget and --extension-lr try others). After each extension, a
 reconstruction trained from scratch on all the segments so far with the same total number of
 steps as the incremental map has had. Both scored on the held-out frames of all segments so
 far (the model's held-out PSNR and depth L1 on its hits); forgetting = the first segment's
@@ -39,7 +39,7 @@ import time
 import numpy as np
 from bench_suite import OUT, PATHS, SHARED, machine, run_in_processes
 
-from open3d_pnerf.pipeline import EXTENSION_BUDGET
+from open3d_pnerf.pipeline import EXTENSION_BUDGET, EXTENSION_LR
 
 SEGMENT_MULTIPLE = 4  # = holdout_every: the held-out frames are the same in a segment and in the concatenation
 
@@ -99,23 +99,27 @@ def run_one(spec: dict) -> dict:
         return {**out, "segments": rows}
     if spec["kind"] == "retrain":
         joined = concatenate(parts[: spec["upto"]])
-        steps = cfg.max_steps + round(EXTENSION_BUDGET * cfg.max_steps) * (spec["upto"] - 1)
+        steps = cfg.max_steps + round(spec["extension_budget"] * cfg.max_steps) * (spec["upto"] - 1)
         t0 = time.perf_counter()
         recon = pn.reconstruct(joined, cfg.replace(max_steps=steps, time_budget_s=None), poses=joined.gt_poses)
         first_hold = np.arange(0, len(parts[0]), SEGMENT_MULTIPLE)
         return {**out, "wall_s": round(time.perf_counter() - t0, 1), "steps": recon.stats["training"]["steps"],
+                "timings": recon.stats["timings"],
                 "scores": _scores(recon, joined), "first": _scores(recon, joined, first_hold),
                 "peak_rss_mb": _peak_rss_mb()}
     t0 = time.perf_counter()  # incremental
+    extension = cfg.replace(max_steps=round(spec["extension_budget"] * cfg.max_steps), time_budget_s=None,
+                            **{"optimizer.lr": spec["extension_lr"] * cfg.optimizer.lr})
     recon = pn.reconstruct(parts[0], cfg.replace(time_budget_s=None), poses=parts[0].gt_poses)
     first_hold = recon.holdout_indices.copy()
     steps = [{"segments": 1, "wall_s": round(time.perf_counter() - t0, 1), "steps": recon.stats["training"]["steps"],
               "scores": _scores(recon, recon.frames), "first": _scores(recon, recon.frames, first_hold)}]
     for k in range(1, len(parts)):
         t0 = time.perf_counter()
-        recon = recon.extend(parts[k], poses=parts[k].gt_poses)
+        recon = recon.extend(parts[k], extension, poses=parts[k].gt_poses)
         steps.append({"segments": k + 1, "wall_s": round(time.perf_counter() - t0, 1),
                       "steps": recon.stats["training"]["steps"], "box_grown": recon.stats["extended"][-1]["box_grown"],
+                      "timings": recon.stats["timings"],
                       "scores": _scores(recon, recon.frames), "first": _scores(recon, recon.frames, first_hold)})
     return {**out, "steps": steps, "peak_rss_mb": _peak_rss_mb()}
 
@@ -175,7 +179,8 @@ def markdown(results: list[dict], meta: dict) -> str:
     lines += [] if not extended else [
              f"A map that grows: {meta['segments']} consecutive segments, GT poses, every 4th frame of each segment "
              "held out, 320x240. Each cell: mean over the seeds (min..max). *extend*: the map of the segments before, extended with "
-             "segment k by `Reconstruction.extend` (its default budget and learning rate); *retrain*: trained from "
+             f"segment k by `Reconstruction.extend` ({meta.get('extension_budget', 0.5):g} of the map's steps at "
+             f"{meta.get('extension_lr', 0.3):g} of its learning rate); *retrain*: trained from "
              "scratch on segments 1..k with as many steps as the incremental map has had in all. Scores on the "
              "held-out frames of segments 1..k; forgetting: the first segment's held-out PSNR when it was mapped "
              "minus after this extension (beside it, the same drop for the retrain: what sharing the field with "
@@ -251,6 +256,10 @@ def main():
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
     ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
     ap.add_argument("--preset", default="fast", help="'test': a smoke test of the script")
+    ap.add_argument("--extension-budget", type=float, default=EXTENSION_BUDGET,
+                    help="each extension's share of the map's steps (default: extend's own)")
+    ap.add_argument("--extension-lr", type=float, default=EXTENSION_LR,
+                    help="each extension's share of the map's learning rate (default: extend's own)")
     ap.add_argument("--name", default="mapping")
     ap.add_argument("--markdown-only", action="store_true", help="write results/<name>.md again from its .json")
     args = ap.parse_args()
@@ -262,7 +271,8 @@ def main():
     missing = [s for s in scenes if not PATHS.get(s, SHARED / "?").is_dir()]
     if missing:
         raise SystemExit(f"shared data not found for {missing} (expected under {SHARED})")
-    common = dict(segments=args.segments, threads=args.threads, preset=args.preset)
+    common = dict(segments=args.segments, threads=args.threads, preset=args.preset,
+                  extension_budget=args.extension_budget, extension_lr=args.extension_lr)
     kinds = args.kinds.split(",")
     specs = [dict(scene=s, seed=seed, kind=kind, upto=None, **common) for kind in ("incremental", "stream")
              if kind in kinds for s in scenes for seed in seeds]
@@ -274,7 +284,8 @@ def main():
     t0 = time.perf_counter()
     results = run_in_processes(run_one, specs, args.jobs, lambda r: f"{r['scene']} seed {r['seed']} {r['kind']} done")
     meta = {"machine": machine(), "seeds": seeds, "segments": args.segments, "kinds": kinds, "threads": args.threads,
-            "jobs": args.jobs, "preset": args.preset, "wall_minutes": round((time.perf_counter() - t0) / 60, 1)}
+            "jobs": args.jobs, "preset": args.preset,
+            "extension_budget": args.extension_budget, "extension_lr": args.extension_lr, "wall_minutes": round((time.perf_counter() - t0) / 60, 1)}
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(results, meta))
     print((OUT / f"{args.name}.md").read_text())
