@@ -153,11 +153,9 @@ def fit(sequence: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray,
                           f"targets-rank{dist.rank}" if dist.enabled else "targets")
     targets = config.targets.build(train_seq, poses[train_idx], covariances[train_idx], storage, config.progress)
     box = training_box(train_seq, targets, poses[train_idx])
-    field = fresh = None
+    field = None
     if base is not None:
         box, field = continued_field(base, box, config)
-        if (box != base.aabb).any():  # the block it grew has learned nothing: the map's own rate
-            fresh = list(field.encoding.blocks[-1].parameters()), base.config.optimizer.lr
     aabb = dist.broadcast_array(box, "the scene box's broadcast", config.device)
     observed = None
     if train_seq.has_depth:  # what the sensor saw: the model's depth is widened away from it
@@ -179,7 +177,7 @@ def fit(sequence: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray,
     if dist.is_main and len(hold_idx):
         eval_rays = heldout_rays(model, sequence.select(hold_idx).scaled_by(config.image_scale), poses[hold_idx],
                                  config.seed)
-    trainer = Trainer(model, batcher, config, eval_rays, checkpoint_dir, dist, fresh)
+    trainer = Trainer(model, batcher, config, eval_rays, checkpoint_dir, dist)
     if checkpoint is not None:
         trainer.load_checkpoint(Path(checkpoint_dir) / "checkpoint.pt", checkpoint)
     try:
@@ -200,7 +198,7 @@ def fit(sequence: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray,
         stats["extended"] = [*base.stats.get("extended", []),
                              {"frames_before": len(base.poses), "frames_added": len(poses) - len(base.poses),
                               "box_grown": bool((aabb != base.aabb).any()), "max_steps": config.max_steps,
-                              "lr": config.optimizer.lr, "new_block_lr": fresh[1] if fresh else None}]
+                              "lr": config.optimizer.lr}]
     recon = Reconstruction(model, config, poses, covariances, train_seq.intrinsic, train_idx, hold_idx,
                            timestamps=sequence.timestamps, color_gains=gains, observed=observed,
                            frames=sequence if sequence.has_depth else None, stats=stats)  # what extend() replays

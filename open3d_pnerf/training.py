@@ -83,13 +83,10 @@ class Trainer:
     several ranks each step renders this rank's share of the same `rays_per_batch` rays,
     sums gradients and statistics over the ranks, and follows rank 0's clock for the time
     budget and the schedule; a Ctrl-C on any rank stops every rank after the same step.
-    fresh: (parameters, lr) of a part of the field that starts untrained while the rest was
-    trained before (the block an extension grew): it learns at lr, the rest at optimizer.lr.
     """
 
     def __init__(self, model: PNeRFModel, batcher: RayBatcher, config, eval_rays=None,
-                 checkpoint_dir: str | Path | None = None, dist: DistributedContext | None = None,
-                 fresh: tuple[list, float] | None = None):
+                 checkpoint_dir: str | Path | None = None, dist: DistributedContext | None = None):
         self.model, self.batcher, self.config = model, batcher, config
         self.dist = dist or DistributedContext()
         opt = config.optimizer
@@ -99,11 +96,7 @@ class Trainer:
         self.eval_rays = eval_rays
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
         fused = dict(fused=True) if _fused_adam_ok(model.field) else {}
-        fresh_params, fresh_lr = fresh or ([], None)
-        fresh_ids = {id(p) for p in fresh_params}
-        groups = [{"params": [p for p in model.field.parameters() if id(p) not in fresh_ids], "lr": opt.lr}]
-        if fresh_params:
-            groups.append({"params": list(fresh_params), "lr": fresh_lr})
+        groups = [{"params": list(model.field.parameters()), "lr": opt.lr}]
         if model.pose_corrections is not None:
             groups.append({"params": list(model.pose_corrections.parameters()), "lr": opt.pose_lr})
         if model.exposure is not None:

@@ -84,27 +84,6 @@ def test_a_field_grown_twice_builds_again_from_its_boxes_with_the_same_weights()
     torch.testing.assert_close(rebuilt.density(x), field.density(x))
 
 
-def test_a_grown_block_learns_at_its_own_rate_and_the_rest_of_the_field_at_the_configs(sample):
-    from open3d_pnerf.model import build_model
-    from open3d_pnerf.targets import depth_targets
-    from open3d_pnerf.batches import RayBatcher
-    from open3d_pnerf.training import Trainer
-
-    cfg = ReconstructionConfig.preset("test", progress=False)
-    seq = sample[FIRST]
-    small, large = np.array([[-1, -1, 0], [1, 1, 2]], np.float32), np.array([[-2, -1, 0], [1, 1, 2]], np.float32)
-    field = grow(cfg.build_field(small), large, cfg.build_field(large).encoding)
-    model = build_model(cfg, field.aabb.numpy(), seq.gt_poses, seq.K, field=field)
-    targets = depth_targets(seq, poses=seq.gt_poses, progress=False)
-    block = list(field.encoding.blocks[-1].parameters())
-    trainer = Trainer(model, RayBatcher(seq, targets, "cpu", cfg.seed), cfg, fresh=(block, 0.05))
-    first, second = trainer.optimizer.param_groups[:2]
-    assert first["lr"] == cfg.optimizer.lr and second["lr"] == 0.05
-    assert {id(p) for p in second["params"]} == {id(p) for p in block}
-    assert not {id(p) for p in first["params"]} & {id(p) for p in block}
-    assert len(first["params"]) + len(block) == len(list(field.parameters()))
-
-
 def test_only_a_grid_field_grows():
     config = ReconstructionConfig.preset("test", field="vanilla")
     with pytest.raises(ConfigError, match="only a grid field can grow"):
@@ -159,8 +138,8 @@ def test_extend_adds_the_frames_and_leaves_the_map_as_it_was(sample, first_map):
     np.testing.assert_array_equal(extended.holdout_indices, [0, 4, 6, 10])
     np.testing.assert_allclose(extended.poses, sample.gt_poses)
     steps, lr = round(0.5 * base.config.max_steps), pytest.approx(0.3 * base.config.optimizer.lr)
-    assert extended.stats["extended"] == [{"frames_before": 6, "frames_added": 5, "box_grown": False,  # the default
-                                           "max_steps": steps, "lr": lr, "new_block_lr": None}]  # budget and rate
+    assert extended.stats["extended"] == [{"frames_before": 6, "frames_added": 5, "box_grown": False,
+                                           "max_steps": steps, "lr": lr}]  # the default budget and rate
     assert extended.stats["training"]["steps"] == steps
     assert extended.config == base.config  # the map's own schedule: the next extension's default is the same
     assert extended.mesh is not None and len(extended.mesh.triangles) > 0
@@ -181,8 +160,6 @@ def test_an_extended_folder_extends_again_and_a_far_segment_grows_the_box(sample
     assert twice.stats["extended"][-1]["box_grown"] and len(twice.stats["extended"]) == 2
     schedules = [(e["max_steps"], e["lr"]) for e in twice.stats["extended"]]
     assert schedules[0] == schedules[1] == (round(0.5 * base.config.max_steps), 0.3 * base.config.optimizer.lr)
-    # the block grown over the new region starts untrained: it learns at the map's own rate
-    assert [e["new_block_lr"] for e in twice.stats["extended"]] == [None, base.config.optimizer.lr]
     assert twice.aabb[1, 0] > base.aabb[1, 0] + 2.5
     assert isinstance(twice.field.encoding, BlockEncoding)
     again = Reconstruction.load(twice.save(tmp_path / "twice"))
