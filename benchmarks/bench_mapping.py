@@ -3,8 +3,8 @@
 Per scene and seed, the recording is cut into consecutive segments (each a multiple of 4 frames,
 so that every 4th frame of each segment is held out both ways). Incremental: `reconstruct` the
 first segment (the `fast` preset, ground-truth poses), then `Reconstruction.extend` it with each
-next segment (its defaults: pipeline.EXTENSION_BUDGET of the map's steps, EXTENSION_LR of its learning
-rate; --extension-budget and --extension-lr try others). After each extension, a
+next segment (its default: pipeline.EXTENSION_BUDGET of the map's steps at its learning rate;
+--extension-budget and --extension-lr try others). After each extension, a
 reconstruction trained from scratch on all the segments so far with the same total number of
 steps as the incremental map has had. Both scored on the held-out frames of all segments so
 far (the model's held-out PSNR and depth L1 on its hits); forgetting = the first segment's
@@ -39,7 +39,7 @@ import time
 import numpy as np
 from bench_suite import OUT, PATHS, SHARED, machine, run_in_processes
 
-from open3d_pnerf.pipeline import EXTENSION_BUDGET, EXTENSION_LR
+from open3d_pnerf.pipeline import EXTENSION_BUDGET
 
 SEGMENT_MULTIPLE = 4  # = holdout_every: the held-out frames are the same in a segment and in the concatenation
 
@@ -258,8 +258,8 @@ def main():
     ap.add_argument("--preset", default="fast", help="'test': a smoke test of the script")
     ap.add_argument("--extension-budget", type=float, default=EXTENSION_BUDGET,
                     help="each extension's share of the map's steps (default: extend's own)")
-    ap.add_argument("--extension-lr", type=float, default=EXTENSION_LR,
-                    help="each extension's share of the map's learning rate (default: extend's own)")
+    ap.add_argument("--extension-lr", type=float, default=1.0,
+                    help="each extension's share of the map's learning rate (default 1, extend's own: the map's rate)")
     ap.add_argument("--name", default="mapping")
     ap.add_argument("--markdown-only", action="store_true", help="write results/<name>.md again from its .json")
     args = ap.parse_args()

@@ -249,11 +249,9 @@ def reconstruct(rgbd_sequence: RGBDSequence, config: ReconstructionConfig | None
 
 # -- extending a map --------------------------------------------------------------------------------
 EXTENSION_BUDGET = 0.5
-"""An extension's default training budget: this share of the map's own max_steps and time_budget_s
-(the field starts trained; the old frames are replayed with the new ones)."""
-EXTENSION_LR = 0.3
-"""An extension's default learning rate: this share of the map's own (a trained field restarted at
-the full rate drifts from what it mapped; chosen on TUM fr1/xyz, benchmarks/bench_mapping.py)."""
+"""An extension's default training budget: this share of the map's own max_steps and time_budget_s,
+at the map's learning rate (the field starts trained; the old frames are replayed with the new ones).
+Chosen on TUM fr1/xyz (benchmarks/README.md)."""
 
 
 def extend(base: Reconstruction, sequence: RGBDSequence, config: ReconstructionConfig | None = None, poses=None,
@@ -292,13 +290,11 @@ def extend(base: Reconstruction, sequence: RGBDSequence, config: ReconstructionC
 
 def extension_config(base: Reconstruction, config: ReconstructionConfig | None) -> ReconstructionConfig:
     """The config of an extension of `base`: `config` checked to keep base's field (ConfigError), or
-    for None base's own with EXTENSION_BUDGET of its training budget and EXTENSION_LR of its
-    learning rate."""
+    for None base's own with EXTENSION_BUDGET of its training budget."""
     old = base.config
     if config is None:
         budget = None if old.time_budget_s is None else EXTENSION_BUDGET * old.time_budget_s
-        config = old.replace(max_steps=max(1, round(EXTENSION_BUDGET * old.max_steps)), time_budget_s=budget,
-                             **{"optimizer.lr": EXTENSION_LR * old.optimizer.lr})
+        config = old.replace(max_steps=max(1, round(EXTENSION_BUDGET * old.max_steps)), time_budget_s=budget)
     config = checked_config(config)
     if (config.field, config.geometry, config.field_config) != (old.field, old.geometry, old.field_config):
         raise ConfigError(f"extend(): the config changes the map's field (field={old.field!r}, geometry="
