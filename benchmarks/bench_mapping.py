@@ -176,11 +176,12 @@ def markdown(results: list[dict], meta: dict) -> str:
     lines = [f"`{meta['preset']}` preset, seeds {meta['seeds']}; {meta['threads']} thread(s) per run, {meta['jobs']} "
              f"at once; {meta['wall_minutes']} min in all; {meta['machine']}.", ""]
     extended = table(results)
+    schedule = (f"{meta['extension_budget']:g} of the map's steps at {meta['extension_lr']:g} of its learning rate"
+                if "extension_budget" in meta else "its default budget and learning rate at the time")  # older files
     lines += [] if not extended else [
              f"A map that grows: {meta['segments']} consecutive segments, GT poses, every 4th frame of each segment "
              "held out, 320x240. Each cell: mean over the seeds (min..max). *extend*: the map of the segments before, extended with "
-             f"segment k by `Reconstruction.extend` ({meta.get('extension_budget', 0.5):g} of the map's steps at "
-             f"{meta.get('extension_lr', 0.3):g} of its learning rate); *retrain*: trained from "
+             f"segment k by `Reconstruction.extend` ({schedule}); *retrain*: trained from "
              "scratch on segments 1..k with as many steps as the incremental map has had in all. Scores on the "
              "held-out frames of segments 1..k; forgetting: the first segment's held-out PSNR when it was mapped "
              "minus after this extension (beside it, the same drop for the retrain: what sharing the field with "
@@ -284,8 +285,8 @@ def main():
     t0 = time.perf_counter()
     results = run_in_processes(run_one, specs, args.jobs, lambda r: f"{r['scene']} seed {r['seed']} {r['kind']} done")
     meta = {"machine": machine(), "seeds": seeds, "segments": args.segments, "kinds": kinds, "threads": args.threads,
-            "jobs": args.jobs, "preset": args.preset,
-            "extension_budget": args.extension_budget, "extension_lr": args.extension_lr, "wall_minutes": round((time.perf_counter() - t0) / 60, 1)}
+            "jobs": args.jobs, "preset": args.preset, "extension_budget": args.extension_budget,
+            "extension_lr": args.extension_lr, "wall_minutes": round((time.perf_counter() - t0) / 60, 1)}
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(results, meta))
     print((OUT / f"{args.name}.md").read_text())

@@ -317,7 +317,8 @@ class Reconstruction:
         :data:`~open3d_pnerf.pipeline.EXTENSION_BUDGET` of its training budget at its learning
         rate; a config that changes the field type or its settings raises ConfigError. The new
         reconstruction's config keeps this map's budget and rate, so that each later extension's
-        default is the same share. A segment that does not register to the map raises TrackingError. Needs :attr:`frames` (saved folders keep them).
+        default is the same share. A segment that does not register to the map raises
+        TrackingError. Needs :attr:`frames` (saved folders keep them).
         """
         from .pipeline import extend
 
