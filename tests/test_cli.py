@@ -190,7 +190,9 @@ def test_the_cli_and_the_python_api_track_the_same_data_the_same_way(tmp_path):
     from scipy.spatial.transform import Rotation
 
     delta = np.linalg.inv(recon.poses) @ np.load(out / "poses.npy")  # right perturbations
-    np.testing.assert_allclose(delta[0], np.eye(4), atol=1e-9)  # the first frame is the origin of both
+    # frame 0 is the origin of the depth cameras, but these are colour-camera poses (its offset solved with
+    # the others) and it has no covariance of its own: held to 0.5 mrad / 2 mm (0.04 mrad / 0.16 mm seen)
+    assert np.abs(delta[0, :3, :3] - np.eye(3)).max() < 5e-4 and np.abs(delta[0, :3, 3]).max() < 2e-3
     for step, cov in zip(delta[1:], recon.covariances[1:]):
         x = np.concatenate([Rotation.from_matrix(step[:3, :3]).as_rotvec(), step[:3, 3]])
         assert x @ np.linalg.solve(cov, x) < 0.5**2
