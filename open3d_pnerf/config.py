@@ -20,7 +20,8 @@ import torch
 
 from .errors import ConfigError
 from .export import ExportConfig
-from .fields import FIELD_CONFIGS, EncodedField, GridConfig, HashGridConfig, SDFConfig, VanillaConfig, grow
+from .fields import (FIELD_CONFIGS, EncodedField, GridConfig, HashGridConfig, SDFConfig, VanillaConfig, block_table_size,
+                     grow)
 from .losses import LOSSES, ObjectiveConfig
 from .rendering.volume import SamplingConfig
 from .settings import FLAG, Rule, Settings, count, number, one_of, optional, section, setting
@@ -163,22 +164,41 @@ class ReconstructionConfig(Settings):
         """The sub-config of the chosen field type (HashGridConfig, GridConfig or VanillaConfig)."""
         return getattr(self, self.field)
 
-    def build_field(self, aabb, blocks=None):
+    def build_field(self, aabb, blocks=None, tables=None):
         """The chosen field over the scene box aabb (2, 3) metres, on `device`, initialised from `seed`;
-        blocks: the (K, 2, 3) boxes of a field that grew (see fields.grow), the last one aabb."""
+        blocks: the (K, 2, 3) boxes of a field that grew (see fields.grow), the last one aabb; tables:
+        a grown hash grid's log2 table size per block (default: the config's for the first block,
+        fields.block_table_size for the others, as :meth:`grow_field` makes them)."""
         torch.manual_seed(self.seed)
         try:
-            sdf = {"sdf": self.sdf} if self.geometry == "sdf" else {}
-            build = self.field_config.build
-            field = build(torch.as_tensor(aabb if blocks is None else blocks[0]), bf16=self.runtime.bf16_mlp, **sdf)
+            field = self._build(aabb if blocks is None else blocks[0], None if tables is None else tables[0])
             if blocks is not None:
                 if not isinstance(field, EncodedField):
                     raise ConfigError(f"config field field={self.field!r}: only a grid field can grow its box")
-                for box in blocks[1:]:
-                    grow(field, box, build(torch.as_tensor(box), bf16=self.runtime.bf16_mlp, **sdf).encoding)
+                for k in range(1, len(blocks)):
+                    self.grow_field(field, blocks[k], None if tables is None else tables[k])
             return field.to(torch.device(self.device))
         except (RuntimeError, AssertionError) as exc:
             raise ConfigError(f"config field device={self.device!r} is not usable here ({exc})") from None
+
+    def grow_field(self, field: EncodedField, box, log2_table_size: int | None = None) -> EncodedField:
+        """`field` grown over the larger box `box` (2, 3) m by a fresh block of the chosen encoding,
+        initialised from `seed` (fields.grow; in place, returned); a hash grid's block gets a table sized to the volume it
+        adds (fields.block_table_size) unless log2_table_size says otherwise."""
+        torch.manual_seed(self.seed)
+        size = log2_table_size
+        if self.field == "hashgrid" and size is None:
+            size = block_table_size(self.hashgrid.log2_table_size, field.aabb.cpu(), box)
+        block = self._build(torch.as_tensor(box, dtype=torch.float32), size).encoding
+        return grow(field, box, block)
+
+    def _build(self, aabb, log2_table_size: int | None = None):
+        """The chosen field over aabb (2, 3) m (a hash grid with 2^log2_table_size rows per level when given)."""
+        settings = self.field_config
+        if log2_table_size is not None:
+            settings = dataclasses.replace(settings, log2_table_size=int(log2_table_size))
+        sdf = {"sdf": self.sdf} if self.geometry == "sdf" else {}
+        return settings.build(torch.as_tensor(aabb), bf16=self.runtime.bf16_mlp, **sdf)
 
     # -- validation --------------------------------------------------------------------------
     def validate(self, prefix: str = "") -> None:

@@ -27,7 +27,7 @@ from .data.sequence import Frame, RGBDSequence
 from .errors import CheckpointError, InputError
 from .evaluation import heldout_scores
 from .export import export_geometry
-from .fields import EncodedField, grow
+from .fields import EncodedField
 from .model import build_model
 from .observed import ObservedSurface
 from .pipeline import checked_config
@@ -274,7 +274,7 @@ class Mapper:
                              "field cannot grow (a grid field can: 'hashgrid' or 'grid')")
         lo, hi = np.minimum(self.aabb[0], box[0]), np.maximum(self.aabb[1], box[1])
         union = np.stack([lo - pad * (hi - lo), hi + pad * (hi - lo)]).astype(np.float32)
-        self.field = grow(self.field, union, self.config.build_field(union).encoding)
+        self.field = self.config.grow_field(self.field, union)
         self.aabb = union
 
     def _rebuild_trainer(self, config: ReconstructionConfig | None = None) -> None:

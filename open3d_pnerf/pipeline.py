@@ -27,7 +27,7 @@ from .data.sequence import RGBDSequence, check_sequence, concatenate, depth_in_c
 from .distributed import DistributedContext, distributed_session
 from .errors import CheckpointError, ConfigError, InputError, TrainingInterrupted
 from .export import export_geometry
-from .fields import EncodedField, grow
+from .fields import EncodedField
 from .model import build_model
 from .observed import ObservedSurface
 from .reconstruction import Reconstruction
@@ -318,7 +318,7 @@ def continued_field(base: Reconstruction, box: np.ndarray, config: Reconstructio
     """(scene box, field) to train base's field further on frames whose own scene box is `box` (2, 3):
     base's box and a copy of its field when the box pokes out of it by at most the box's margin
     (scene.BOX_MARGIN), else the union of both with the copy grown by a new block
-    (:func:`~open3d_pnerf.fields.grow`: the old region encoded as before the growth)."""
+    (:meth:`ReconstructionConfig.grow_field`: the old region encoded as before the growth)."""
     field = copy.deepcopy(base.field).to(torch.device(config.device))
     old = base.aabb
     if (box[0] >= old[0] - BOX_MARGIN).all() and (box[1] <= old[1] + BOX_MARGIN).all():
@@ -327,7 +327,7 @@ def continued_field(base: Reconstruction, box: np.ndarray, config: Reconstructio
         raise InputError(f"extend(): the new frames reach outside the map's box {old.tolist()} and a "
                          f"{config.field!r} field cannot grow (a grid field can: 'hashgrid' or 'grid')")
     union = np.stack([np.minimum(old[0], box[0]), np.maximum(old[1], box[1])]).astype(np.float32)
-    return union, grow(field, union, config.build_field(union).encoding)
+    return union, config.grow_field(field, union)
 
 
 def checked_config(config: ReconstructionConfig | None) -> ReconstructionConfig:

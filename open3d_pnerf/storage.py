@@ -29,7 +29,7 @@ from .data.trajectories import write_log_trajectory, write_open3d_trajectory, wr
 from .error_law import DepthErrorLaw
 from .errors import CheckpointError, ConfigError, DatasetError, InputError
 from .export import Geometry, read_mesh_ply, read_point_cloud_ply, write_mesh_ply, write_point_cloud_ply
-from .fields import block_boxes
+from .fields import block_boxes, block_tables
 from .model import build_model
 from .observed import ObservedSurface
 from .training import safe_torch_load
@@ -64,6 +64,7 @@ def write_folder(recon, directory, frames: bool = True) -> Path:
         "stats": recon.stats,
         "observed_voxel_size": None if recon.observed is None else recon.observed.voxel_size,
         "blocks": block_boxes(model.field),
+        "block_tables": block_tables(model.field),
     }
     weights = {k: v.cpu() for k, v in model.field.state_dict().items()}
     writes = {
@@ -149,13 +150,19 @@ def read_folder(directory, device: str | None = None) -> dict:
             if not (np.isfinite(blocks).all() and (blocks[:, 0] < blocks[:, 1]).all()
                     and np.allclose(blocks[-1], aabb)):
                 raise ValueError("blocks are not finite [min, max] boxes ending with aabb")
+        tables = meta.get("block_tables")
+        if blocks is not None and tables is None and config.field == "hashgrid":
+            tables = [config.hashgrid.log2_table_size] * len(blocks)  # written before blocks were sized
+        if tables is not None and (blocks is None or len(tables) != len(blocks) or not all(
+                isinstance(t, int) and 4 <= t <= 26 for t in tables)):
+            raise ValueError(f"block_tables {tables!r} are not one log2 table size in [4, 26] per block")
         voxel = meta.get("observed_voxel_size")
         if voxel is not None and not (isinstance(voxel, (int, float)) and np.isfinite(voxel) and voxel > 0):
             raise ValueError(f"observed_voxel_size {voxel!r} is not a size > 0 (m)")
     except (KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f"{meta_path}: malformed metadata ({exc})") from None
     try:
-        model = build_model(config, aabb, depth_range=depth_range, blocks=blocks)
+        model = build_model(config, aabb, depth_range=depth_range, blocks=blocks, tables=tables)
     except ConfigError as exc:
         raise CheckpointError(f"{meta_path}: {exc}") from None
     try:

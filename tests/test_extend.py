@@ -12,7 +12,7 @@ from open3d_pnerf import Reconstruction, ReconstructionConfig, absolute_trajecto
 from open3d_pnerf.cli import EXIT_ERROR, main
 from open3d_pnerf.data import concatenate
 from open3d_pnerf.errors import CheckpointError, ConfigError, InputError, TrackingError
-from open3d_pnerf.fields import BlockEncoding, HashGridConfig, block_boxes, grow
+from open3d_pnerf.fields import BlockEncoding, HashGridConfig, block_boxes, block_table_size, block_tables, grow
 from open3d_pnerf.synthetic import synthetic_sequence
 from open3d_pnerf.tracking import track_onto
 
@@ -70,18 +70,31 @@ def test_a_grown_field_encodes_its_old_box_exactly_as_before_and_the_rest_with_t
         grow(field, old_box, small_field(old_box).encoding)
 
 
+def test_a_grown_blocks_table_holds_the_volume_it_adds_at_the_first_blocks_rows_per_cell():
+    unit = [[0, 0, 0], [1, 1, 1]]
+    assert block_table_size(19, unit, [[0, 0, 0], [2, 1, 1]]) == 18  # adds half the box: half the rows
+    assert block_table_size(19, unit, [[0, 0, 0], [2, 2, 2]]) == 19  # 7/8 of the box: rounded up, 2^19
+    assert block_table_size(19, [[0, 0, 0], [19, 1, 1]], [[0, 0, 0], [23, 1, 1]]) == 17  # 4/23 -> 2^16.5 -> 2^17
+    assert block_table_size(19, unit, [[0, 0, 0], [1.000001, 1, 1]]) == 4  # a sliver: the smallest table
+    assert block_table_size(12, unit, [[-9, -9, -9], [9, 9, 9]]) == 12  # never more rows than the field's
+
+
 def test_a_field_grown_twice_builds_again_from_its_boxes_with_the_same_weights():
     boxes = [[[0, 0, 0], [1, 1, 1]], [[-1, 0, 0], [2, 1, 1]], [[-1, -1, 0], [2, 1, 1]]]
-    field = small_field(boxes[0])
-    for box in boxes[1:]:
-        grow(field, box, small_field(box).encoding)
-    assert len(field.encoding.blocks) == 3  # one block per growth, not nested
     config = ReconstructionConfig.preset("test", **{"hashgrid.levels": 4, "hashgrid.log2_table_size": 12,
                                                     "hashgrid.max_resolution": 64, "runtime.bf16_mlp": False})
+    field = config.build_field(boxes[0])
+    for box in boxes[1:]:
+        config.grow_field(field, box)
+    assert len(field.encoding.blocks) == 3  # one block per growth, not nested
+    assert block_tables(field) == [12, 12, 11]  # the last growth adds 1/3 of its box: 2^(12 - 1.58) -> 2^11
+    assert field.encoding.blocks[2].table.shape[0] == 4 * 2**11  # 4 levels (16..64 cells), all hashed
     rebuilt = config.build_field(boxes[-1], blocks=boxes)
     rebuilt.load_state_dict(field.state_dict())
     x = torch.rand(300, 3) * torch.tensor([3.0, 2, 1]) + torch.tensor([-1.0, -1, 0])
     torch.testing.assert_close(rebuilt.density(x), field.density(x))
+    full = config.build_field(boxes[-1], blocks=boxes, tables=[12, 12, 12])  # as folders written before sizing
+    assert block_tables(full) == [12, 12, 12]
 
 
 def test_only_a_grid_field_grows():
@@ -164,8 +177,21 @@ def test_an_extended_folder_extends_again_and_a_far_segment_grows_the_box(sample
     assert isinstance(twice.field.encoding, BlockEncoding)
     again = Reconstruction.load(twice.save(tmp_path / "twice"))
     np.testing.assert_allclose(again.aabb, twice.aabb)
+    assert block_tables(again.field) == block_tables(twice.field)
+    assert block_tables(twice.field)[-1] < twice.config.hashgrid.log2_table_size  # sized to the added volume
     out, expected = again.render(again.poses[1]), twice.render(twice.poses[1])
     np.testing.assert_allclose(out["depth"], expected["depth"], rtol=1e-5, atol=1e-5)
+
+    # a folder written before grown blocks were sized (every block at the config's table size, and no
+    # block_tables in its metadata) loads with the tables it was written with
+    boxes, size = block_boxes(twice.field), twice.config.hashgrid.log2_table_size
+    full = twice.config.build_field(twice.aabb, blocks=boxes, tables=[size] * len(boxes))
+    twice.model.field = full
+    legacy = twice.save(tmp_path / "legacy")
+    meta = json.loads((legacy / "reconstruction.json").read_text())
+    del meta["block_tables"]
+    (legacy / "reconstruction.json").write_text(json.dumps(meta))
+    assert block_tables(Reconstruction.load(legacy).field) == [size] * len(boxes)
 
 
 @pytest.mark.slow

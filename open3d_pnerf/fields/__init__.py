@@ -14,6 +14,8 @@ from .fields import (
     VanillaConfig,
     VanillaNeRFField,
     block_boxes,
+    block_table_size,
+    block_tables,
     grow,
 )
 from .sdf import SDFConfig
@@ -21,5 +23,5 @@ from .sdf import SDFConfig
 __all__ = [
     "BlockEncoding", "DenseGridEncoding", "EncodedField", "FIELD_CONFIGS", "Field", "FrequencyEncoding", "GridConfig", "GridField",
     "HashGridConfig", "HashGridEncoding", "HashGridField", "SDFConfig", "VanillaConfig", "VanillaNeRFField",
-    "block_boxes", "grow",
+    "block_boxes", "block_table_size", "block_tables", "grow",
 ]

@@ -8,6 +8,7 @@ and return density sigma >= 0 (1/m) and colour in [0, 1].
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
 from torch import nn
@@ -166,6 +167,26 @@ def block_boxes(field: nn.Module) -> list | None:
     """The (K, 2, 3) world boxes of a grown field's blocks as nested lists (None for a field that never grew)."""
     encoding = getattr(field, "encoding", None)
     return encoding.boxes.tolist() if isinstance(encoding, BlockEncoding) else None
+
+
+def block_tables(field: nn.Module) -> list | None:
+    """log2 of each hash-grid block's table size of a grown field (None for a field that never grew or
+    whose blocks are not hash grids)."""
+    encoding = getattr(field, "encoding", None)
+    if not isinstance(encoding, BlockEncoding) or not isinstance(encoding.blocks[0], HashGridEncoding):
+        return None
+    return [int(block.table_size).bit_length() - 1 for block in encoding.blocks]
+
+
+def block_table_size(log2_table_size: int, inner, box) -> int:
+    """log2 of the hash table of a block grown over `box` (2, 3) m that encodes only the part outside
+    `inner` (2, 3) m (the box before the growth, see :func:`grow`): the field's 2^log2_table_size rows
+    scaled by that part's share of the box, rounded up to a power of two. Rows per cell of the region
+    a block encodes are then those of the first block, and each growth adds parameters (and Adam and
+    backward time per step) for its new volume only, not for a whole table."""
+    inner, box = (torch.as_tensor(b, dtype=torch.float64).reshape(2, 3) for b in (inner, box))
+    share = 1 - float((inner[1] - inner[0]).prod() / (box[1] - box[0]).prod())
+    return int(min(log2_table_size, max(4, math.ceil(log2_table_size + math.log2(max(share, 1e-9))))))
 
 
 class GridField(EncodedField):
