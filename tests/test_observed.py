@@ -51,6 +51,22 @@ def test_points_outside_the_box_and_invalid_pixels_are_not_observed():
     assert len(boxed) == 0
 
 
+def test_the_voxels_of_two_views_are_each_occupied_voxel_once_in_every_octant():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 3.0, (2, 48, 64))
+    poses = np.stack([np.eye(4), np.eye(4)])
+    poses[1, :3, 3] = [-1.3, 0.7, -2.2]  # the second view's points straddle the origin: negative keys too
+    observed = ObservedSurface.from_depths(depth, depth > 0, K, poses, 0.05)
+    rows, cols = np.mgrid[:48, :64]
+    points = []
+    for d, pose in zip(depth, poses):  # the pinhole back-projection written out
+        cam = np.stack([(cols - K[0, 2]) / K[0, 0] * d, (rows - K[1, 2]) / K[1, 1] * d, d], -1).reshape(-1, 3)
+        points.append(cam @ pose[:3, :3].T + pose[:3, 3])
+    expected = (np.unique(np.floor(np.concatenate(points) / 0.05), axis=0) + 0.5) * 0.05
+    np.testing.assert_allclose(observed.centres, expected, atol=1e-6)
+    assert (expected < 0).any() and (expected > 0).any()
+
+
 @pytest.mark.parametrize("voxel, centres", [(0.0, np.zeros((1, 3))), (-1.0, np.zeros((1, 3))),
                                             (0.02, np.zeros((3,))), (0.02, np.full((1, 3), np.nan))])
 def test_bad_observed_surfaces_are_refused(voxel, centres):
