@@ -10,19 +10,18 @@ steps as the incremental map has had. Both scored on the held-out frames of all 
 far (the model's held-out PSNR and depth L1 on its hits); forgetting = the first segment's
 held-out PSNR right after it was mapped minus after the last extension; wall time of each update
 (extend) against the retrain (each a whole call: tracking/poses, targets, training, calibration,
-export); peak memory of each process. Tracking: the ATE of each new segment tracked onto the map
-(`track_onto`, on the frames as given: 640x480) against the same frames'
-ATE when the whole recording is tracked at once.
+export; each run alone on the machine, as wall times are compared); peak memory of each process.
+Tracking: the ATE of each new segment tracked onto the map (`track_onto`, on the frames as given:
+640x480) against the same frames' ATE when the whole recording is tracked at once.
 
-The streaming Mapper (--kinds stream; run it alone, --jobs 1, as its frame rate is a target): the
-whole recording at 320x240 fed frame by frame (`fast` preset at image_scale 1, so it trains at
+The streaming Mapper (--kinds stream): the whole recording at 320x240 fed frame by frame (`fast` preset at image_scale 1, so it trains at
 320x240 too), every frame tracked and keyframes trained between frames; frames per second over
 the add() calls; its map after `finish()` (a further minute of training) against an offline
 reconstruction of the same kept frames with the same poses and split (the `fast` preset's
 budget), both scored on the held-out frames it kept; the ATE of every streamed frame.
 
     python benchmarks/bench_mapping.py [--scenes tum,7scenes] [--seeds 0,1,2] [--segments 3] [--name mapping]
-    python benchmarks/bench_mapping.py --kinds stream --jobs 1 --name mapping_stream
+    python benchmarks/bench_mapping.py --kinds stream --name mapping_stream
     python benchmarks/bench_mapping.py --name mapping --markdown-only
 
 Writes benchmarks/results/<name>.json and <name>.md.
@@ -253,9 +252,11 @@ def main():
     ap.add_argument("--scenes", default="tum,7scenes")
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--segments", type=int, default=3)
-    ap.add_argument("--kinds", default="incremental,retrain,tracking", help="also: stream (run it with --jobs 1)")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
-    ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
+    ap.add_argument("--kinds", default="incremental,retrain,tracking", help="also: stream")
+    ap.add_argument("--threads", type=int, default=min(2, multiprocessing.cpu_count()), help="torch threads per run")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="runs at once (default 1: wall times are compared, so each run has the machine to itself; "
+                         "with 2, a run's time depends on what runs beside it)")
     ap.add_argument("--preset", default="fast", help="'test': a smoke test of the script")
     ap.add_argument("--extension-budget", type=float, default=EXTENSION_BUDGET,
                     help="each extension's share of the map's steps (default: extend's own)")
