@@ -14,11 +14,12 @@ export; each run alone on the machine, as wall times are compared); peak memory 
 Tracking: the ATE of each new segment tracked onto the map (`track_onto`, on the frames as given:
 640x480) against the same frames' ATE when the whole recording is tracked at once.
 
-The streaming Mapper (--kinds stream): the whole recording at 320x240 fed frame by frame (`fast` preset at image_scale 1, so it trains at
-320x240 too), every frame tracked and keyframes trained between frames; frames per second over
-the add() calls; its map after `finish()` (a further minute of training) against an offline
-reconstruction of the same kept frames with the same poses and split (the `fast` preset's
-budget), both scored on the held-out frames it kept; the ATE of every streamed frame.
+The streaming Mapper (--kinds stream): the whole recording at 320x240 fed frame by frame (`fast`
+preset at image_scale 1, so it trains at 320x240 too), every frame tracked and keyframes trained
+between frames; frames per second over the add() calls; its map after `finish()` (a further minute
+of training) against an offline reconstruction of the same kept frames with the same poses and split
+(the `fast` preset's budget), both scored on the held-out frames it kept; the ATE of every streamed
+frame.
 
     python benchmarks/bench_mapping.py [--scenes tum,7scenes] [--seeds 0,1,2] [--segments 3] [--name mapping]
     python benchmarks/bench_mapping.py --kinds stream --name mapping_stream
