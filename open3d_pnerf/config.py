@@ -183,8 +183,8 @@ class ReconstructionConfig(Settings):
 
     def grow_field(self, field: EncodedField, box, log2_table_size: int | None = None) -> EncodedField:
         """`field` grown over the larger box `box` (2, 3) m by a fresh block of the chosen encoding,
-        initialised from `seed` (fields.grow; in place, returned); a hash grid's block gets a table sized to the volume it
-        adds (fields.block_table_size) unless log2_table_size says otherwise."""
+        initialised from `seed` (fields.grow; in place, returned); a hash grid's block gets a table
+        sized to the volume it adds (fields.block_table_size) unless log2_table_size says otherwise."""
         torch.manual_seed(self.seed)
         size = log2_table_size
         if self.field == "hashgrid" and size is None:

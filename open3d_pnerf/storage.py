@@ -153,9 +153,10 @@ def read_folder(directory, device: str | None = None) -> dict:
         tables = meta.get("block_tables")
         if blocks is not None and tables is None and config.field == "hashgrid":
             tables = [config.hashgrid.log2_table_size] * len(blocks)  # written before blocks were sized
-        if tables is not None and (blocks is None or len(tables) != len(blocks) or not all(
-                isinstance(t, int) and 4 <= t <= 26 for t in tables)):
-            raise ValueError(f"block_tables {tables!r} are not one log2 table size in [4, 26] per block")
+        if tables is not None and (blocks is None or config.field != "hashgrid" or len(tables) != len(blocks)
+                                   or not all(isinstance(t, int) and 4 <= t <= 26 for t in tables)):
+            raise ValueError(f"block_tables {tables!r} are not one log2 table size in [4, 26] per block of a "
+                             "grown hash grid")
         voxel = meta.get("observed_voxel_size")
         if voxel is not None and not (isinstance(voxel, (int, float)) and np.isfinite(voxel) and voxel > 0):
             raise ValueError(f"observed_voxel_size {voxel!r} is not a size > 0 (m)")

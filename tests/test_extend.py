@@ -192,6 +192,10 @@ def test_an_extended_folder_extends_again_and_a_far_segment_grows_the_box(sample
     del meta["block_tables"]
     (legacy / "reconstruction.json").write_text(json.dumps(meta))
     assert block_tables(Reconstruction.load(legacy).field) == [size] * len(boxes)
+    meta["block_tables"] = [size]  # one size for three blocks
+    (legacy / "reconstruction.json").write_text(json.dumps(meta))
+    with pytest.raises(CheckpointError, match="malformed metadata.*block_tables"):
+        Reconstruction.load(legacy)
 
 
 @pytest.mark.slow
