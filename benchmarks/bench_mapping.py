@@ -154,6 +154,15 @@ def _peak_rss_mb() -> float:
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)  # Linux: KiB
 
 
+def _ms_per_step(run: dict) -> float | None:
+    """A call's time less tracking, targets and export (calibration included), per training step (ms):
+    training and building the model; None where the run recorded no timings."""
+    t = run.get("timings")
+    if not t or "export_s" not in t:
+        return None
+    return 1000 * (t["total_s"] - t["tracking_s"] - t["targets_s"] - t["export_s"]) / run["steps"]
+
+
 def table(results: list[dict]) -> dict:
     """{scene: {segments k: {...means over seeds...}}} pairing each incremental step with its retrain."""
     out = {}
@@ -165,6 +174,7 @@ def table(results: list[dict]) -> dict:
             row = {"psnr_extend": step["scores"]["psnr"], "psnr_retrain": retrain["scores"]["psnr"],
                    "depth_extend": step["scores"]["depth_l1_mm"], "depth_retrain": retrain["scores"]["depth_l1_mm"],
                    "wall_extend": step["wall_s"], "wall_retrain": retrain["wall_s"],
+                   "step_ms_extend": _ms_per_step(step), "step_ms_retrain": _ms_per_step(retrain),
                    "forgetting_db": inc["steps"][0]["first"]["psnr"] - step["first"]["psnr"],
                    "forgetting_retrain_db": inc["steps"][0]["first"]["psnr"] - retrain["first"]["psnr"],
                    "rss_incremental": inc["peak_rss_mb"], "rss_retrain": retrain["peak_rss_mb"]}
@@ -186,13 +196,17 @@ def markdown(results: list[dict], meta: dict) -> str:
              "held-out frames of segments 1..k; forgetting: the first segment's held-out PSNR when it was mapped "
              "minus after this extension (beside it, the same drop for the retrain: what sharing the field with "
              "more frames costs the first segment without any forgetting); wall: the whole call (targets, training, "
-             "calibration, export).", "",
+             "calibration, export); per step: the call less tracking, targets and export, over its training steps.",
+             "",
              "| scene | k | PSNR extend / retrain (dB) | depth L1 extend / retrain (mm) | wall extend / retrain (s) "
-             "| wall ratio | forgetting extend / retrain (dB) | peak RSS incremental / retrain (MB) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| wall ratio | per step extend / retrain (ms) | forgetting extend / retrain (dB) "
+             "| peak RSS incremental / retrain (MB) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
 
     def cell(rows, key, fmt):
         v = [r[key] for r in rows]
+        if any(x is None for x in v):  # files written before the runs recorded it
+            return "-"
         return format(np.mean(v), fmt) + (f" ({min(v):{fmt}}..{max(v):{fmt}})" if len(v) > 1 else "")
 
     for scene, by_k in extended.items():
@@ -201,7 +215,8 @@ def markdown(results: list[dict], meta: dict) -> str:
             lines.append(f"| {scene} | {k} | {cell(rows, 'psnr_extend', '.2f')} / {cell(rows, 'psnr_retrain', '.2f')} "
                          f"| {cell(rows, 'depth_extend', '.1f')} / {cell(rows, 'depth_retrain', '.1f')} "
                          f"| {cell(rows, 'wall_extend', '.0f')} / {cell(rows, 'wall_retrain', '.0f')} "
-                         f"| {np.mean(ratio):.2f} | {cell(rows, 'forgetting_db', '.2f')} / "
+                         f"| {np.mean(ratio):.2f} | {cell(rows, 'step_ms_extend', '.0f')} / "
+                         f"{cell(rows, 'step_ms_retrain', '.0f')} | {cell(rows, 'forgetting_db', '.2f')} / "
                          f"{cell(rows, 'forgetting_retrain_db', '.2f')} "
                          f"| {cell(rows, 'rss_incremental', '.0f')} / {cell(rows, 'rss_retrain', '.0f')} |")
     stream = [r for r in results if r["kind"] == "stream"]

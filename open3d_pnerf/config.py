@@ -189,8 +189,7 @@ class ReconstructionConfig(Settings):
         size = log2_table_size
         if self.field == "hashgrid" and size is None:
             size = block_table_size(self.hashgrid.log2_table_size, field.aabb.cpu(), box)
-        block = self._build(torch.as_tensor(box, dtype=torch.float32), size).encoding
-        return grow(field, box, block)
+        return grow(field, box, self._build(box, size).encoding)
 
     def _build(self, aabb, log2_table_size: int | None = None):
         """The chosen field over aabb (2, 3) m (a hash grid with 2^log2_table_size rows per level when given)."""

@@ -33,7 +33,7 @@ def _packed(keys: np.ndarray) -> np.ndarray:
 
 def _distinct(values: np.ndarray) -> np.ndarray:
     """The sorted distinct values of a 1-D array: a sort and a comparison (numpy 2.4's np.unique
-    hashes, 14x slower on millions of voxel keys)."""
+    hashes, which is slower on millions of voxel keys)."""
     values = np.sort(values)
     return values[np.concatenate([[True], values[1:] != values[:-1]])] if len(values) else values
 
