@@ -111,14 +111,16 @@ class PNeRFModel(nn.Module):
         (no targets here), colour only where a sample's weight reaches VIEW_COLOR_MIN_WEIGHT
         (see :func:`~open3d_pnerf.rendering.volume.render_rays`).
 
+        Samples as :meth:`SamplingConfig.for_render` says (more coarse ones than training uses).
         Returns the :class:`~open3d_pnerf.rendering.RayRender` fields named by `keys`: by default
         color (R, 3), depth (R,) expected ray distance, depth_var (R,), opacity (R,); also
         median (R,) median ray distance, t (R, S), edges (R, S + 1), weights (R, S) with
-        S = n_coarse + n_fine + n_guided.
+        S = max(n_coarse, n_coarse_render) + n_fine + n_guided.
         """
         outs = {k: [] for k in keys}
+        sampling = self.sampling.for_render()
         for start in range(0, len(rays), chunk):
-            render, _ = render_rays(self.field, rays[start : start + chunk], self.sampling, jitter=False,
+            render, _ = render_rays(self.field, rays[start : start + chunk], sampling, jitter=False,
                                     color_min_weight=VIEW_COLOR_MIN_WEIGHT)
             for k in outs:
                 outs[k].append(getattr(render, k))

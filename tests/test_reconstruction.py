@@ -341,6 +341,39 @@ def test_depth_pdf_of_an_analytic_wall_peaks_at_its_z_depth():
         recon.depth_pdf(np.eye(4), [1, 2, 3])
 
 
+
+class SlabField(WallField):
+    """Opaque slab z0 - half <= z <= z0 + half (world), thinner than the training sampling's coarse spacing."""
+
+    def __init__(self, aabb, z0, half):
+        super().__init__(aabb, z0)
+        self.half = half
+
+    def geometry(self, x, encoded=None):
+        return torch.where((x[:, 2] - self.z0).abs() <= self.half, 1e3, 0.0), torch.zeros(len(x), 1)
+
+
+def test_renders_find_a_slab_thinner_than_the_training_coarse_spacing():
+    aabb = np.array([[-2, -2, 0.8], [2, 2, 1.8]], np.float32)  # the centre ray crosses 1 m of the box
+    cfg = ReconstructionConfig.preset("test", progress=False)
+    assert cfg.sampling.n_coarse == 16 and cfg.sampling.n_coarse_render == 32
+    half = 1.1 / 32 / 2  # 1.1x the spacing of 32 samples over 1 m, 0.55x that of 16: they step over it
+
+    def centre_ray(config, z0):
+        recon = Reconstruction(SlabField(aabb, z0, half), config, np.eye(4)[None], np.zeros((1, 6, 6)), intrinsic(),
+                               [0], [])
+        K = np.asarray(intrinsic().intrinsic_matrix)
+        rays = recon.model.camera_rays(np.eye(4), K, torch.tensor([19.5]), torch.tensor([14.5]))  # ||K^-1 uv1|| = 1
+        out = recon.model.render(rays, keys=("opacity", "median"))
+        return float(out["opacity"][0]), float(out["median"][0])
+
+    centres = np.linspace(0.85, 1.75, 37)
+    found = [centre_ray(cfg, z0) for z0 in centres]  # wider than the 32 render samples' spacing: always sampled
+    assert all(opacity > 0.99 and abs(depth - z0) <= half for (opacity, depth), z0 in zip(found, centres))
+    training_like = cfg.replace(**{"sampling.n_coarse_render": 16})
+    assert min(centre_ray(training_like, z0)[0] for z0 in centres) < 0.5  # what renders did before
+
+
 # -- end to end on the sample ---------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def sample():

@@ -81,6 +81,15 @@ class SamplingConfig(Settings):
     depth_guided: bool = setting(True, FLAG)
     """Place the n_guided samples around the depth target when training with depth terms
     (False: extra importance samples)."""
+    n_coarse_render: int = setting(32, count(2))
+    """Stratified samples per ray when rendering (views, evaluation, calibration, export), at least
+    n_coarse: a coarse pass that steps over a thin structure (a table leg) never samples it finely,
+    and the ray renders what lies behind it. Only density is evaluated at these samples (colour
+    where the weight counts), so renders cost a little more, training nothing."""
+
+    def for_render(self) -> "SamplingConfig":
+        """These settings with n_coarse raised to n_coarse_render (what renders sample)."""
+        return dataclasses.replace(self, n_coarse=max(self.n_coarse, self.n_coarse_render))
 
 
 def render_rays(
