@@ -341,7 +341,6 @@ def test_depth_pdf_of_an_analytic_wall_peaks_at_its_z_depth():
         recon.depth_pdf(np.eye(4), [1, 2, 3])
 
 
-
 class SlabField(WallField):
     """Opaque slab z0 - half <= z <= z0 + half (world), thinner than the training sampling's coarse spacing."""
 
