@@ -126,8 +126,9 @@ def read_folder(directory, device: str | None = None) -> dict:
     meta = _read_meta(meta_path)
     try:
         config = ReconstructionConfig.from_dict(meta["config"])
-        if "n_coarse_render" not in meta["config"].get("sampling", {}):  # written when renders sampled as training:
-            config = config.replace(**{"sampling.n_coarse_render": config.sampling.n_coarse})  # its law was fitted so
+        if "n_coarse_render" not in meta["config"].get("sampling", {}):
+            # written when renders sampled as training does: keep rendering so (its depth law was fitted to those)
+            config = config.replace(**{"sampling.n_coarse_render": config.sampling.n_coarse})
         if device:
             config = config.replace(device=device)
     except (ConfigError, TypeError, ValueError) as exc:

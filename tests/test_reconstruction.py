@@ -323,7 +323,7 @@ def test_depth_pdf_of_an_analytic_wall_peaks_at_its_z_depth():
     recon = wall_reconstruction(1.2)
     pixels = np.array([[19.5, 14.5], [0, 0], [39, 29], [5, 20]])  # centre and corners: ||K^-1 [u, v, 1]|| up to 1.3
     pdf = recon.depth_pdf(np.eye(4), pixels)
-    sampling = recon.config.sampling
+    sampling = recon.config.sampling.for_render()  # what render() samples
     s = sampling.n_coarse + sampling.n_fine + sampling.n_guided
     assert pdf["z"].shape == pdf["mass"].shape == pdf["pdf"].shape == (4, s) and pdf["edges"].shape == (4, s + 1)
     assert (np.diff(pdf["edges"], axis=1) >= 0).all() and (pdf["z"] >= pdf["edges"][:, :-1] - 1e-6).all()
