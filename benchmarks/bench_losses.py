@@ -1,7 +1,7 @@
 """The paper's loss comparison, paired over seeds: pnerf vs DS-NeRF's loss vs colour only.
 
-Every loss trains the same configuration (the `fast` preset, the library's defaults) for the
-same number of steps from the same seeds; a run's held-out PSNR/SSIM (and depth L1 and sigma
+Every loss trains the same configuration (the `fast` preset, the library's defaults; Fern the
+`forward_facing` preset) for the same number of steps from the same seeds; a run's held-out PSNR/SSIM (and depth L1 and sigma
 coverage where the dataset has depth) is scored on full held-out images at the end. Equal
 time: each run also scores a fixed set of 2,048 held-out pixels every 250 steps; the table's
 "equal-time" column is that PSNR at the largest time every run of the dataset and seed
@@ -16,6 +16,8 @@ out, 320x240). Each run is a fresh process, `--jobs` at once with one torch thre
     python benchmarks/bench_losses.py --datasets synthetic,tum --steps 3000 --name losses_rgbd
     python benchmarks/bench_losses.py --datasets synthetic --variants pnerf,pnerf_fine_terms --seeds 0,1 \
         --steps 1500 --name tuning_coarse_terms      # a settings choice, on the tuning scene
+    python benchmarks/bench_losses.py --datasets fern --variants pnerf,pnerf_coarse16,pnerf_coarse64 --seeds 0 \
+        --steps 3000 --split tuning --name tuning_fern_coarse  # Fern's settings, on the frames the 10 views leave
 
 Writes benchmarks/results/<name>.json and <name>.md.
 """
@@ -38,7 +40,16 @@ VARIANTS = {  # name -> config overrides
     "photometric": dict(loss="photometric"),
     "pnerf_fine_terms": {"loss": "pnerf", "objective.coarse_terms": False},
     "pnerf_uniform_batches": {"loss": "pnerf", "optimizer.target_ray_share": 0.0},
+    # on Fern, settings measured against its preset (forward_facing: NDC, 32 coarse samples)
+    "pnerf_box": {"loss": "pnerf", "ndc": "off"},
+    "photometric_box": {"loss": "photometric", "ndc": "off"},
+    "pnerf_coarse16": {"loss": "pnerf", "sampling.n_coarse": 16},
+    "pnerf_coarse64": {"loss": "pnerf", "sampling.n_coarse": 64},
+    "pnerf_res512": {"loss": "pnerf", "hashgrid.max_resolution": 512},
+    "pnerf_grid": {"loss": "pnerf", "field": "grid"},
+    "pnerf_c2f": {"loss": "pnerf", "optimizer.coarse_to_fine": 0.5},
 }
+PRESET = {"fern": "forward_facing"}  # each dataset's preset (the others: "fast")
 PAPER = {"fern": {"pnerf": (25.53, 0.80), "dsnerf": (24.27, 0.74)}}  # the PNeRF paper's Table (PSNR dB, SSIM)
 
 
@@ -54,12 +65,15 @@ def run_one(spec: dict) -> dict:
     poses, covs = poses_for(spec["source"], seq, "gt", Path(spec["cache"]))
     d = spec["dataset"]
     cfg = pn.ReconstructionConfig.preset(
-        "fast", max_steps=spec["steps"], time_budget_s=None, holdout_every=HOLDOUT_EVERY.get(d, 4),
+        PRESET.get(d, "fast"), max_steps=spec["steps"], time_budget_s=None, holdout_every=HOLDOUT_EVERY.get(d, 4),
         image_scale=IMAGE_SCALE.get(d, 0.5), train_views=spec["views"], seed=spec["seed"], progress=False,
         **VARIANTS[spec["variant"]])
     t0 = time.perf_counter()
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     wall = time.perf_counter() - t0
+    if spec["split"] == "tuning":  # score the pool's frames the sparse views left out, never the held-out ones
+        recon.holdout_indices = np.setdiff1d(np.arange(len(seq)), np.union1d(recon.train_indices,
+                                                                               recon.holdout_indices))
     scores = heldout_scores(recon, seq)["model"]
     tr = recon.stats["training"]
     history = [(h["seconds"], h["eval_psnr"]) for h in recon.stats["history"] if "eval_psnr" in h]
@@ -105,8 +119,10 @@ def summary(results: list[dict], variants: list[str]) -> dict:
 
 
 def markdown(results: list[dict], meta: dict, variants: list[str]) -> str:
+    split = ("Scored on the held-out frames." if meta.get("split", "report") == "report" else
+             "Tuning split: scored on the training pool's frames the sparse views left out, not the held-out ones.")
     lines = [f"{meta['steps']} steps per run (equal steps), seeds {meta['seeds']}, {meta['threads']} thread(s), "
-             f"{meta['jobs']} run(s) at once; {meta['wall_minutes']} min in all; {meta['machine']}.",
+             f"{meta['jobs']} run(s) at once; {meta['wall_minutes']} min in all; {meta['machine']}. {split}",
              "PSNR/SSIM/depth: full held-out images at the end. Equal time: PSNR of 2,048 fixed held-out pixels "
              "at the time every run of the same dataset and seed had reached.", ""]
     head = "| dataset | loss | seed | PSNR (dB) | SSIM | depth L1 (mm) | within 1σ | equal-time PSNR (s) | train s |"
@@ -141,6 +157,9 @@ def main():
     ap.add_argument("--views", type=int, default=10, help="training views (0 = every non-held-out frame)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
     ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
+    ap.add_argument("--split", choices=("report", "tuning"), default="report",
+                    help="score the held-out frames (report), or the training pool's frames the --views left out "
+                         "(tuning: where settings are chosen, so the held-out frames stay unseen)")
     ap.add_argument("--name", default="losses", help="stem of the result files in benchmarks/results/")
     args = ap.parse_args()
     datasets, variants = args.datasets.split(","), args.variants.split(",")
@@ -155,17 +174,21 @@ def main():
     cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     sources = {d: prepare_synthetic(cache, False) if d == "synthetic" else d for d in datasets}
+    if args.split == "tuning" and args.views == 0:
+        raise SystemExit("--split tuning scores the frames --views leaves out: give --views")
     specs = [dict(dataset=d, source=sources[d], variant=v, seed=s, views=args.views, steps=args.steps,
-                  threads=args.threads, cache=str(cache))
+                  threads=args.threads, cache=str(cache), split=args.split)
              for d in datasets for s in seeds for v in variants]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
         f"{r['dataset']:10s} {r['variant']:22s} seed {r['seed']} PSNR {r['model']['psnr']:.2f} "
         f"SSIM {r['model']['ssim']:.3f} {r['train_s']:.0f} s"))
     add_equal_time(results)
     meta = {"machine": machine(),
-            "steps": args.steps, "seeds": seeds, "views": args.views, "threads": args.threads, "jobs": args.jobs,
+            "steps": args.steps, "seeds": seeds, "views": args.views, "split": args.split, "threads": args.threads,
+            "jobs": args.jobs,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
             "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets},
+            "preset": {d: PRESET.get(d, "fast") for d in datasets},
             "image_only": [d for d in datasets if d in IMAGE_ONLY]}
     meta["summary"] = summary(results, variants)
     (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))

@@ -154,13 +154,13 @@ class PNeRFModel(nn.Module):
 
 def build_model(config, aabb, poses: np.ndarray | None = None, K: np.ndarray | None = None,
                 covariances: np.ndarray | None = None, depth_range=None, blocks=None, tables=None,
-                field: nn.Module | None = None) -> PNeRFModel:
+                field: nn.Module | None = None, warp=None) -> PNeRFModel:
     """The model of a ReconstructionConfig over the scene box aabb (2, 3): the field (seeded by config.seed,
     on config.device; blocks, tables: the boxes and log2 table sizes of a field that grew, see
-    ReconstructionConfig.build_field; or the given `field`, to train further) and, given the training
+    ReconstructionConfig.build_field; warp: its NDCWarp or None; or the given `field`, to train further) and, given the training
     cameras (poses (N, 4, 4), K (3, 3), pose covariances (N, 6, 6)), the exposure gains and pose
     corrections the config asks for; depth_range: (2,) z-depth [near, far] of every ray, or None."""
-    field = config.build_field(aabb, blocks, tables) if field is None else field
+    field = config.build_field(aabb, blocks, tables, warp) if field is None else field
     device = field.aabb.device
     if depth_range is not None:
         depth_range = torch.as_tensor(np.asarray(depth_range), dtype=torch.float32, device=device)

@@ -32,7 +32,7 @@ from .model import build_model
 from .observed import ObservedSurface
 from .reconstruction import Reconstruction
 from .report import report_markdown
-from .scene import BOX_MARGIN, depth_range, training_box
+from .scene import BOX_MARGIN, depth_range, ndc_warp, training_box
 from .targets.storage import storage_dir
 from .tracking import absolute_trajectory_error
 from .training import Trainer, read_checkpoint
@@ -153,9 +153,11 @@ def fit(sequence: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray,
                           f"targets-rank{dist.rank}" if dist.enabled else "targets")
     targets = config.targets.build(train_seq, poses[train_idx], covariances[train_idx], storage, config.progress)
     box = training_box(train_seq, targets, poses[train_idx])
-    field = None
+    field, warp = None, None
     if base is not None:
         box, field = continued_field(base, box, config)
+    else:
+        warp = ndc_warp(train_seq, poses[train_idx], config.ndc)
     aabb = dist.broadcast_array(box, "the scene box's broadcast", config.device)
     observed = None
     if train_seq.has_depth:  # what the sensor saw: the model's depth is widened away from it
@@ -166,7 +168,7 @@ def fit(sequence: RGBDSequence, config: ReconstructionConfig, poses: np.ndarray,
 
     stages.set_postfix_str("training")
     model = build_model(config, aabb, poses[train_idx], train_seq.K, covariances[train_idx], depth_range(train_seq),
-                        field=field)
+                        field=field, warp=warp)
     if base is not None and model.exposure is not None:  # the old frames keep the exposure they were given
         with torch.no_grad():
             model.exposure.log_gains[: len(base.train_indices)] = torch.as_tensor(

@@ -13,6 +13,8 @@ import numpy as np
 
 from .camera import backproject, camera_rays
 from .data.sequence import RGBDSequence
+from .errors import InputError
+from .fields.ndc import NDCWarp
 from .targets import DepthTargets
 
 BOX_MARGIN = 0.05  # m: what scene_box adds on every side beyond its relative padding
@@ -40,14 +42,20 @@ def scene_box(targets: DepthTargets, poses: np.ndarray, K: np.ndarray, pad: floa
     return np.stack([lo - margin, hi + margin]).astype(np.float32)
 
 
+def frustum_corners(K: np.ndarray, image_size: tuple[int, int], poses: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """(8 N, 3) world corners of each camera's view frustum between its near and far z-depth
+    bounds (N, 2); K (3, 3), image_size (H, W), poses (N, 4, 4) camera-to-world."""
+    h, w = image_size
+    rays = camera_rays(K, np.array([-0.5, w - 0.5, -0.5, w - 0.5]), np.array([-0.5, -0.5, h - 0.5, h - 0.5]))
+    pts = [(rays[None] * z[:, None, None]) @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
+           for z in np.asarray(bounds).T]
+    return np.concatenate(pts).reshape(-1, 3)
+
+
 def frustum_box(K: np.ndarray, image_size: tuple[int, int], poses: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """(2, 3) axis-aligned box holding each camera's view frustum between its near and far
     z-depth bounds (N, 2); K (3, 3), image_size (H, W), poses (N, 4, 4) camera-to-world."""
-    h, w = image_size
-    rays = camera_rays(K, np.array([-0.5, w - 0.5, -0.5, w - 0.5]), np.array([-0.5, -0.5, h - 0.5, h - 0.5]))  # corners
-    pts = [(rays[None] * z[:, None, None]) @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
-           for z in bounds.T]
-    pts = np.concatenate(pts).reshape(-1, 3)
+    pts = frustum_corners(K, image_size, poses, bounds)
     return np.stack([pts.min(0), pts.max(0)]).astype(np.float32)
 
 
@@ -70,3 +78,29 @@ def training_box(train_seq: RGBDSequence, targets: DepthTargets, poses: np.ndarr
     if not targets.valid.any():
         warnings.warn(f"{train_seq.name}: no SfM point gives a depth target in the training views")
     return frustum_box(train_seq.K, train_seq.image_size, poses, np.tile(rng, (len(poses), 1)))
+
+
+def ndc_warp(train_seq: RGBDSequence, poses: np.ndarray, mode: str = "auto") -> NDCWarp | None:
+    """The field's NDC warp (fields.ndc) for training frames with poses (N, 4, 4), or None.
+
+    mode "auto": NDC for an image-only sequence with SfM bounds (a forward-facing capture such
+    as LLFF); "on": NDC, an InputError without SfM bounds; "off": None. The reference camera sits
+    at the frames' mean centre with their mean orientation (as NeRF's LLFF loader recentres), NDC
+    near at :func:`depth_range`'s near, and the box holds every frame's frustum over that range;
+    an InputError if a frustum reaches behind the reference camera (not a forward-facing capture)."""
+    rng = depth_range(train_seq)
+    if mode == "off" or (mode == "auto" and rng is None):
+        return None
+    if rng is None:
+        raise InputError(f"{train_seq.name}: ndc='on' needs an image-only sequence with SfM depth bounds "
+                         "(an LLFF folder's poses_bounds.npy)")
+    poses = np.asarray(poses, np.float64)
+    u, _, vt = np.linalg.svd(poses[:, :3, :3].mean(0))
+    reference = np.eye(4)
+    reference[:3, :3] = u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt  # the rotation nearest the mean
+    reference[:3, 3] = poses[:, :3, 3].mean(0)
+    corners = frustum_corners(train_seq.K, train_seq.image_size, poses, np.tile(rng, (len(poses), 1)))
+    if ((corners - reference[:3, 3]) @ reference[:3, 2] <= 0.1 * rng[0]).any():
+        raise InputError(f"{train_seq.name}: its frames' views reach behind their mean camera, so it is not a "
+                         "forward-facing capture; set ndc='off'")
+    return NDCWarp.around(reference, train_seq.K, train_seq.image_size, float(rng[0]), corners)

@@ -29,7 +29,7 @@ from .data.trajectories import write_log_trajectory, write_open3d_trajectory, wr
 from .error_law import DepthErrorLaw
 from .errors import CheckpointError, ConfigError, DatasetError, InputError
 from .export import Geometry, read_mesh_ply, read_point_cloud_ply, write_mesh_ply, write_point_cloud_ply
-from .fields import block_boxes, block_tables
+from .fields import NDCWarp, block_boxes, block_tables
 from .model import build_model
 from .observed import ObservedSurface
 from .training import safe_torch_load
@@ -65,6 +65,7 @@ def write_folder(recon, directory, frames: bool = True) -> Path:
         "observed_voxel_size": None if recon.observed is None else recon.observed.voxel_size,
         "blocks": block_boxes(model.field),
         "block_tables": block_tables(model.field),
+        "ndc": None if model.field.warp is None else model.field.warp.to_dict(),
     }
     weights = {k: v.cpu() for k, v in model.field.state_dict().items()}
     writes = {
@@ -160,13 +161,16 @@ def read_folder(directory, device: str | None = None) -> dict:
                                    or not all(isinstance(t, int) and 4 <= t <= 26 for t in tables)):
             raise ValueError(f"block_tables {tables!r} are not one log2 table size in [4, 26] per block of a "
                              "grown hash grid")
+        warp = meta.get("ndc")
+        if warp is not None:
+            warp = NDCWarp.from_dict(warp)
         voxel = meta.get("observed_voxel_size")
         if voxel is not None and not (isinstance(voxel, (int, float)) and np.isfinite(voxel) and voxel > 0):
             raise ValueError(f"observed_voxel_size {voxel!r} is not a size > 0 (m)")
     except (KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f"{meta_path}: malformed metadata ({exc})") from None
     try:
-        model = build_model(config, aabb, depth_range=depth_range, blocks=blocks, tables=tables)
+        model = build_model(config, aabb, depth_range=depth_range, blocks=blocks, tables=tables, warp=warp)
     except ConfigError as exc:
         raise CheckpointError(f"{meta_path}: {exc}") from None
     try:

@@ -44,6 +44,10 @@ class OptimizerConfig(Settings):
     depth-loss gradients for ~1000 steps, after the depth weights have decayed)."""
     pose_lr: float = setting(1e-3, number(0, low_open=True))
     """Initial learning rate of the pose corrections (rad or m per step; same decay as lr)."""
+    coarse_to_fine: float = setting(0.0, number(0, 1))
+    """Share of training over which a grid field's encoding levels join, coarsest first
+    (fields.EncodedField.enable_levels; BARF / Neuralangelo's coarse-to-fine): sparse views fit
+    coarse geometry before fine levels can overfit them. 0: every level from the start."""
     target_ray_share: float = setting(0.5, number(0, 1, high_open=True))
     """Share of each batch's rays drawn among pixels with a depth target when targets are
     sparser than that (SfM points: ~1% of the pixels); 0 = every ray uniform over the pixels.
@@ -121,6 +125,14 @@ class Trainer:
         decay = self.config.optimizer.lr_final_factor ** self._progress_fraction()
         for group, lr in zip(self.optimizer.param_groups, self._initial_lrs):
             group["lr"] = lr * decay
+
+    def _enable_levels(self, done: bool = False) -> None:
+        """The field's encoding levels for this point of the schedule (optimizer.coarse_to_fine);
+        done: all of them (training stopped, or a field without levels)."""
+        share = self.config.optimizer.coarse_to_fine
+        field = self.model.field
+        if share > 0 and hasattr(field, "enable_levels"):
+            field.enable_levels(None if done else self._progress_fraction() / share)
 
     def loss_weights(self) -> LossWeights:
         """objective.weights with every depth term's weight (Kd, Kz and the DS-NeRF one: the same
@@ -240,6 +252,7 @@ class Trainer:
                 self.dist.broadcast_([p.data for p in self._trained_parameters()], "the initial parameters' broadcast")
             while not self._done() and not (seconds is not None and time.perf_counter() - run_start >= seconds):
                 self._set_lr()
+                self._enable_levels()
                 try:
                     stats = self.train_step()
                 except KeyboardInterrupt:  # the interrupted step is discarded
@@ -263,6 +276,7 @@ class Trainer:
         finally:
             bar.close()
             restore_ctrl_c()
+            self._enable_levels(done=True)  # what is saved and rendered uses every level
         if self.checkpoint_dir and main:
             self.save_checkpoint()
         seconds = time.perf_counter() - run_start

@@ -586,3 +586,42 @@ def test_frequency_encoding_values_and_out_dim():
     cosines = torch.tensor([[math.cos(c * f) for c in x[0].tolist() for f in freqs]])
     torch.testing.assert_close(out[:, 3:15], sines)
     torch.testing.assert_close(out[:, 15:], cosines)
+
+
+# -- coarse-to-fine levels (issue 30) ---------------------------------------------------------------
+def test_coarse_to_fine_weights_ramp_the_levels_in_coarsest_first():
+    field = make_field("hashgrid", AABB, levels=8, log2_table_size=12, max_resolution=256)
+    assert field.level_weights("cpu") is None
+    for share, expected in ((0.0, [1, 0, 0, 0, 0, 0, 0, 0]), (0.5, [1, 1, 1, 1, 0.5, 0, 0, 0]),
+                            (3 / 7, [1, 1, 1, 1, 0, 0, 0, 0])):
+        field.enable_levels(share)
+        torch.testing.assert_close(field.level_weights("cpu"), torch.tensor(expected, dtype=torch.float32),
+                                   atol=1e-6, rtol=0)
+    field.enable_levels(1.0)
+    assert field.level_weights("cpu") is None
+
+
+@pytest.mark.parametrize("name", ["grid", "hashgrid"])
+def test_levels_that_are_off_change_nothing_the_field_returns(name):
+    """With only the coarsest level on, the finer levels' parameters do not reach the density
+    or the colour, and get no gradient; turned on again, they do."""
+    kwargs = {"resolutions": (8, 16, 32)} if name == "grid" else {"levels": 4, "log2_table_size": 13,
+                                                                  "max_resolution": 64}
+    field = make_field(name, AABB, **kwargs)
+    enc = field.encoding
+    finer = list(enc.grids[1:]) if name == "grid" else [enc.table]  # hash grid: level 0 dense, 1-3 hashed
+    assert name == "grid" or len(enc.dense.grids) == 1
+    x = points_in_and_out(64)[0]
+    d = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(1)), dim=1)
+    field.enable_levels(0.0)
+    sigma, rgb = field(x, d)
+    (sigma.sum() + rgb.sum()).backward()
+    assert all(p.grad is None or not p.grad.any() for p in finer)
+    with torch.no_grad():
+        for p in finer:
+            p.add_(torch.randn_like(p))
+    sigma2, rgb2 = field(x, d)
+    torch.testing.assert_close(sigma2, sigma)
+    torch.testing.assert_close(rgb2, rgb)
+    field.enable_levels(None)
+    assert not torch.allclose(field(x, d)[0], sigma)

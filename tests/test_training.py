@@ -30,7 +30,7 @@ from open3d_pnerf.training import CHECKPOINT_VERSION, Trainer, safe_torch_load
 
 
 # -- config ------------------------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["fast", "quality", "test"])
+@pytest.mark.parametrize("name", ["fast", "quality", "forward_facing", "test"])
 def test_presets_exist_and_apply_their_values(name):
     cfg = ReconstructionConfig.preset(name)
     assert isinstance(cfg, ReconstructionConfig)
@@ -550,3 +550,16 @@ def test_training_on_cuda_draws_the_same_rays_as_on_cpu(scene):
     model = make_model(scene, cuda)
     trainer = Trainer(model, RayBatcher(seq, targets, model.device, cfg.seed), cuda)
     assert trainer.train()["steps"] == 3
+
+
+def test_coarse_to_fine_turns_the_levels_on_over_its_share_of_training_and_all_at_the_end(scene, monkeypatch):
+    cfg = config(max_steps=10, **{"optimizer.coarse_to_fine": 0.5})
+    trainer = make_trainer(scene, cfg)
+    seen = []
+    real = trainer.train_step
+    monkeypatch.setattr(trainer, "train_step", lambda: seen.append(trainer.model.field.levels_on) or real())
+    trainer.train()
+    assert seen[:5] == pytest.approx([0.0, 0.2, 0.4, 0.6, 0.8]) and seen[5:] == [None] * 5  # step / (0.5 x 10)
+    assert trainer.model.field.levels_on is None  # saved and rendered with every level
+    with pytest.raises(ConfigError, match="optimizer.coarse_to_fine=0.5 needs a grid field"):
+        config(field="vanilla", **{"optimizer.coarse_to_fine": 0.5})

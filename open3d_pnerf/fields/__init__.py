@@ -1,5 +1,5 @@
 """Scene fields (hash grid, dense grid, vanilla NeRF MLP), their input encodings and their settings;
-a grid field's geometry may be a signed distance (sdf).
+a grid field's geometry may be a signed distance (sdf); a forward-facing capture's field sees NDC (ndc).
 Which one a reconstruction uses, and with what settings, is chosen by its config (FIELD_CONFIGS)."""
 
 from .encodings import BlockEncoding, DenseGridEncoding, FrequencyEncoding, HashGridEncoding
@@ -18,10 +18,11 @@ from .fields import (
     block_tables,
     grow,
 )
+from .ndc import NDCWarp
 from .sdf import SDFConfig
 
 __all__ = [
     "BlockEncoding", "DenseGridEncoding", "EncodedField", "FIELD_CONFIGS", "Field", "FrequencyEncoding", "GridConfig", "GridField",
-    "HashGridConfig", "HashGridEncoding", "HashGridField", "SDFConfig", "VanillaConfig", "VanillaNeRFField",
+    "HashGridConfig", "HashGridEncoding", "HashGridField", "NDCWarp", "SDFConfig", "VanillaConfig", "VanillaNeRFField",
     "block_boxes", "block_table_size", "block_tables", "grow",
 ]

@@ -217,6 +217,10 @@ class BlockEncoding(nn.Module):
     def out_dim(self) -> int:
         return self.blocks[0].out_dim
 
+    @property
+    def features(self) -> int:
+        return self.blocks[0].features
+
     def forward(self, u: torch.Tensor, known: torch.Tensor | None = None) -> torch.Tensor:
         """(B, out_dim) encoding of points u (B, 3) in the last box's coordinates; `known` is not
         reused (each block recomputes its rows)."""

@@ -54,6 +54,7 @@ class Field(nn.Module):
         super().__init__()
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3))
         self.bf16 = bf16
+        self.warp = None  # an NDCWarp (fields.ndc): the field's input is NDC instead of the box
 
     def mlp_precision(self, x: torch.Tensor):
         """The autocast context of the MLPs for inputs on x's device (off unless bf16 on CPU or CUDA)."""
@@ -62,7 +63,9 @@ class Field(nn.Module):
                               enabled=self.bf16 and device in ("cpu", "cuda"))
 
     def normalize(self, x: torch.Tensor) -> torch.Tensor:
-        """World points (B, 3) -> box coordinates in [0, 1]^3."""
+        """World points (B, 3) -> box coordinates in [0, 1]^3 (the NDC box's with a warp)."""
+        if self.warp is not None:
+            return self.warp.normalize(x)
         return (x - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
 
     def density(self, x: torch.Tensor) -> torch.Tensor:
@@ -114,6 +117,7 @@ class EncodedField(Field):
         self.dir_encoding = FrequencyEncoding(3, 4)
         self.color_net = _mlp(geo_features + self.dir_encoding.out_dim, hidden, 2, 3)
         self.sdf = sdf
+        self.levels_on: float | None = None  # see enable_levels(); None: every level, no weighting
         if sdf is not None:  # log of the sharpness 1 / beta (1/m); free space (sdf > 0) to begin with
             self.log_sharpness = nn.Parameter(torch.tensor(float(sdf.sharpness)).log())
             with torch.no_grad():
@@ -128,8 +132,27 @@ class EncodedField(Field):
         with record_function("pnerf.encoding"):
             return self.encoding(self.normalize(x), known)
 
+    def enable_levels(self, share: float | None) -> None:
+        """Coarse-to-fine: weight the encoding's levels so that a `share` in [0, 1] of them is on,
+        coarsest first, each joining smoothly (BARF's cosine ramp: level l of L gets
+        (1 - cos(pi clamp(a - l, 0, 1))) / 2 with a = 1 + share (L - 1), so the coarsest level is
+        always on); None (or 1): every level fully."""
+        self.levels_on = None if share is None or share >= 1 else float(share)
+
+    def level_weights(self, device) -> torch.Tensor | None:
+        """(L,) weight of each encoding level (see enable_levels), or None when all are fully on."""
+        if self.levels_on is None:
+            return None
+        levels = self.encoding.out_dim // self.encoding.features
+        a = 1 + self.levels_on * (levels - 1)
+        ramp = (a - torch.arange(levels, device=device, dtype=torch.float32)).clamp(0, 1)
+        return (1 - torch.cos(math.pi * ramp)) / 2
+
     def _heads(self, x: torch.Tensor, encoded: torch.Tensor | None) -> torch.Tensor:
         encoded = self.encode(x) if encoded is None else encoded
+        weights = self.level_weights(encoded.device)
+        if weights is not None:  # `encoded` stays the raw encoding (a render may reuse it as known rows)
+            encoded = encoded * weights.repeat_interleave(self.encoding.features)
         with record_function("pnerf.mlp"), self.mlp_precision(x):
             return self.sigma_net(encoded).float()
 
@@ -153,6 +176,8 @@ def grow(field: EncodedField, box, block: nn.Module) -> EncodedField:
     """`field` over the larger box `box` (2, 3) m holding its own: its heads and its encoding kept for
     the points of its box (they render exactly as before), the fresh encoding `block` (of the same
     type) for the rest (:class:`BlockEncoding`). The field is changed in place and returned."""
+    if field.warp is not None:
+        raise ValueError("grow(): a field in NDC (a forward-facing capture) has no box to grow")
     box = torch.as_tensor(box, dtype=torch.float32, device=field.aabb.device).reshape(2, 3)
     if (box[0] > field.aabb[0]).any() or (box[1] < field.aabb[1]).any():
         raise ValueError(f"grow(): the box {box.tolist()} does not hold the field's {field.aabb.tolist()}")

@@ -58,12 +58,15 @@ def bin_edges(t: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.T
 
 
 def stratified(rays: Rays, n: int, generator: torch.Generator | BatchShare | None = None,
-               jitter: bool = True) -> torch.Tensor:
-    """(R, n) sorted samples, one uniformly jittered per equal slice of [near, far]."""
+               jitter: bool = True, disparity: bool = False) -> torch.Tensor:
+    """(R, n) sorted samples, one uniformly jittered per equal slice of [near, far], or with
+    disparity=True of [1 / near, 1 / far] (inverse ray distance: even steps of NDC z)."""
     r = len(rays)
     u = torch.arange(n, device=rays.near.device, dtype=torch.float32)
     offset = uniform(r, n, u.device, generator) if jitter else torch.full((r, n), 0.5, device=u.device)
     s = (u + offset) / n
+    if disparity:
+        return 1 / ((1 - s) / rays.near[:, None] + s / rays.far[:, None])
     return rays.near[:, None] + s * (rays.far - rays.near)[:, None]
 
 

@@ -120,9 +120,12 @@ def render_rays(
     sample below adds less than that to the pixel; S * color_min_weight in all). generator: the
     random numbers' source (a :class:`BatchShare` renders rows of a larger batch exactly as that
     batch would); jitter=False: samples in the middle of their slices (deterministic renders).
+    The coarse samples are even in the field's depth coordinate: in disparity for a field with
+    an NDC warp (fields.ndc), in ray distance otherwise.
     """
     with record_function("pnerf.coarse_pass"):
-        t_c = stratified(rays, sampling.n_coarse, generator, jitter)
+        t_c = stratified(rays, sampling.n_coarse, generator, jitter,
+                         disparity=getattr(field, "warp", None) is not None)  # even in NDC z
         e_c = bin_edges(t_c, rays.near, rays.far)
         x_c = _points(rays, t_c)
         one_pass = torch.is_grad_enabled() and getattr(field, "encodes_in_one_pass", False)
