@@ -76,7 +76,8 @@ class ReconstructionConfig(Settings):
     """The field's input coordinates: "on" normalized device coordinates of the training
     frames' mean camera (NeRF's for forward-facing captures: resolution that follows the image at
     every depth, coarse samples even in disparity; open3d_pnerf.fields.ndc), "off" the scene box;
-    "auto" NDC for an image-only sequence with SfM depth bounds (an LLFF folder), the box otherwise."""
+    "auto" NDC for a forward-facing image-only sequence with SfM depth bounds (an LLFF folder),
+    the box otherwise."""
     max_steps: int = setting(1500, count(1))
     """Optimiser steps; the learning-rate schedule is laid over this many steps."""
     time_budget_s: float | None = setting(150.0, optional(number(0, low_open=True, unit="seconds")))

@@ -32,7 +32,7 @@ from .model import build_model
 from .observed import ObservedSurface
 from .reconstruction import Reconstruction
 from .report import report_markdown
-from .scene import BOX_MARGIN, depth_range, ndc_warp, training_box
+from .scene import BOX_MARGIN, depth_range, ndc_depth_range, ndc_warp, training_box
 from .targets.storage import storage_dir
 from .tracking import absolute_trajectory_error
 from .training import Trainer, read_checkpoint
@@ -115,6 +115,7 @@ def run(sequence: RGBDSequence, config: ReconstructionConfig, poses=None, covari
     if dist.enabled:
         config = config.replace(device=dist.device(config.device))
     train_idx, hold_idx = split_frames(len(sequence), config.holdout_every, config.train_views)
+    ndc_depth_range(sequence, config.ndc)  # ndc="on" on a sequence that cannot have it fails before any work
     checkpoint = None
     if resume:  # read it now, not after minutes of tracking
         if not checkpoint_dir:

@@ -80,20 +80,27 @@ def training_box(train_seq: RGBDSequence, targets: DepthTargets, poses: np.ndarr
     return frustum_box(train_seq.K, train_seq.image_size, poses, np.tile(rng, (len(poses), 1)))
 
 
+def ndc_depth_range(sequence: RGBDSequence, mode: str) -> np.ndarray | None:
+    """:func:`depth_range` where the ndc setting `mode` may give NDC, None where it cannot ("off",
+    or "auto" without SfM bounds); an InputError for "on" without SfM bounds (checked before any work)."""
+    rng = None if mode == "off" else depth_range(sequence)
+    if rng is None and mode == "on":
+        raise InputError(f"{sequence.name}: ndc='on' needs an image-only sequence with SfM depth bounds "
+                         "(an LLFF folder's poses_bounds.npy)")
+    return rng
+
+
 def ndc_warp(train_seq: RGBDSequence, poses: np.ndarray, mode: str = "auto") -> NDCWarp | None:
     """The field's NDC warp (fields.ndc) for training frames with poses (N, 4, 4), or None.
 
-    mode "auto": NDC for an image-only sequence with SfM bounds (a forward-facing capture such
-    as LLFF); "on": NDC, an InputError without SfM bounds; "off": None. The reference camera sits
+    mode "auto": NDC for a forward-facing image-only sequence with SfM bounds (LLFF), None for
+    others; "on": NDC, an InputError without SfM bounds or where a frame's frustum reaches behind
+    the reference camera (not a forward-facing capture); "off": None. The reference camera sits
     at the frames' mean centre with their mean orientation (as NeRF's LLFF loader recentres), NDC
-    near at :func:`depth_range`'s near, and the box holds every frame's frustum over that range;
-    an InputError if a frustum reaches behind the reference camera (not a forward-facing capture)."""
-    rng = depth_range(train_seq)
-    if mode == "off" or (mode == "auto" and rng is None):
-        return None
+    near at :func:`depth_range`'s near, and the box holds every frame's frustum over that range."""
+    rng = ndc_depth_range(train_seq, mode)
     if rng is None:
-        raise InputError(f"{train_seq.name}: ndc='on' needs an image-only sequence with SfM depth bounds "
-                         "(an LLFF folder's poses_bounds.npy)")
+        return None
     poses = np.asarray(poses, np.float64)
     u, _, vt = np.linalg.svd(poses[:, :3, :3].mean(0))
     reference = np.eye(4)
@@ -101,6 +108,8 @@ def ndc_warp(train_seq: RGBDSequence, poses: np.ndarray, mode: str = "auto") -> 
     reference[:3, 3] = poses[:, :3, 3].mean(0)
     corners = frustum_corners(train_seq.K, train_seq.image_size, poses, np.tile(rng, (len(poses), 1)))
     if ((corners - reference[:3, 3]) @ reference[:3, 2] <= 0.1 * rng[0]).any():
+        if mode == "auto":
+            return None
         raise InputError(f"{train_seq.name}: its frames' views reach behind their mean camera, so it is not a "
                          "forward-facing capture; set ndc='off'")
     return NDCWarp.around(reference, train_seq.K, train_seq.image_size, float(rng[0]), corners)

@@ -12,6 +12,7 @@ from scipy.stats import norm
 from test_llff import VISIBLE, make_llff
 
 import open3d_pnerf as pn
+from open3d_pnerf import pipeline
 from open3d_pnerf.data import load_sequence
 from open3d_pnerf.errors import InputError
 from open3d_pnerf.fields import NDCWarp
@@ -99,7 +100,7 @@ def test_a_gaussian_depth_targets_mass_is_kept_across_the_warp():
     assert float(mass.sum()) == pytest.approx(1.0, abs=1e-12)
 
 
-def test_which_sequences_get_ndc(tmp_path):
+def test_which_sequences_get_ndc(tmp_path, monkeypatch):
     llff = load_sequence(make_llff(tmp_path / "scene", points=VISIBLE))
     warp = ndc_warp(llff, llff.sfm.poses)
     assert isinstance(warp, NDCWarp) and ndc_warp(llff, llff.sfm.poses, "off") is None
@@ -115,10 +116,14 @@ def test_which_sequences_get_ndc(tmp_path):
     assert ndc_warp(rgbd, rgbd.gt_poses) is None
     with pytest.raises(InputError, match="ndc='on' needs an image-only sequence with SfM depth bounds"):
         ndc_warp(rgbd, rgbd.gt_poses, "on")
+    monkeypatch.setattr(pipeline, "resolve_poses", lambda *a, **k: pytest.fail("tracked before the check"))
+    with pytest.raises(InputError, match="ndc='on' needs an image-only sequence"):
+        pn.reconstruct(rgbd, pn.ReconstructionConfig.preset("test", ndc="on", progress=False))
     turned = llff.sfm.poses.copy()
     turned[1, :3, :3] = np.diag([-1.0, 1.0, -1.0])  # a camera looking back at the others
+    assert ndc_warp(llff, turned) is None  # auto: the scene box
     with pytest.raises(InputError, match="not a forward-facing capture; set ndc='off'"):
-        ndc_warp(llff, turned)
+        ndc_warp(llff, turned, "on")
 
 
 def test_a_saved_ndc_field_renders_as_it_did(tmp_path):
