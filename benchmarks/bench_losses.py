@@ -48,6 +48,8 @@ VARIANTS = {  # name -> config overrides
     "pnerf_res512": {"loss": "pnerf", "hashgrid.max_resolution": 512},
     "pnerf_grid": {"loss": "pnerf", "field": "grid"},
     "pnerf_c2f": {"loss": "pnerf", "optimizer.coarse_to_fine": 0.5},
+    "pnerf_proposal": {"loss": "pnerf", "sampling.n_proposal": 64, "sampling.n_coarse": 16},
+    "pnerf_proposal32": {"loss": "pnerf", "sampling.n_proposal": 64},
 }
 PRESET = {"fern": "forward_facing"}  # each dataset's preset (the others: "fast")
 PAPER = {"fern": {"pnerf": (25.53, 0.80), "dsnerf": (24.27, 0.74)}}  # the PNeRF paper's Table (PSNR dB, SSIM)

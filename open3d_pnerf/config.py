@@ -20,8 +20,8 @@ import torch
 
 from .errors import ConfigError
 from .export import ExportConfig
-from .fields import (FIELD_CONFIGS, EncodedField, GridConfig, HashGridConfig, SDFConfig, VanillaConfig, block_table_size,
-                     grow)
+from .fields import (FIELD_CONFIGS, EncodedField, GridConfig, HashGridConfig, ProposalField, SDFConfig, VanillaConfig,
+                     block_table_size, grow)
 from .losses import LOSSES, ObjectiveConfig
 from .rendering.volume import SamplingConfig
 from .settings import FLAG, Rule, Settings, count, number, one_of, optional, section, setting
@@ -184,6 +184,8 @@ class ReconstructionConfig(Settings):
         try:
             field = self._build(aabb if blocks is None else blocks[0], None if tables is None else tables[0])
             field.warp = warp
+            if self.sampling.n_proposal > 0:
+                field.proposal = ProposalField(self.hashgrid.backend)
             if blocks is not None:
                 if not isinstance(field, EncodedField):
                     raise ConfigError(f"config field field={self.field!r}: only a grid field can grow its box")

@@ -9,7 +9,8 @@ PNeRF: L = Kc L_color + Kd L_depth_pdf + Kz L_depth, each an L1 over coarse and 
                 over [near, far]; sigma is floored at half the width of the bin holding mu.
   L_depth     = |sum_k w_k t_k - mu|
 DS-NeRF: sum_k -log(w_k + eps) exp(-(t_k - mu)^2 / (2 sigma^2)) delta_k.
-Optional with any of them: Mip-NeRF 360's distortion of the weights of every ray.
+Optional with any of them: Mip-NeRF 360's distortion of the weights of every ray. With a
+proposal network (sampling.n_proposal), its interlevel loss trains the proposal.
 Depth targets (mu, sigma) are ray distances in metres (z-depth times ||d||); NaN = none.
 
 A method (:class:`LossMethod`) is the colour term plus its own depth terms; ``LOSS_METHODS``
@@ -40,6 +41,9 @@ class LossWeights(Settings):
     """DS-NeRF ray-distribution loss weight (loss="dsnerf" only)."""
     eikonal: float = setting(0.1, number(0))
     """Eikonal term mean (|grad sdf| - 1)^2 (geometry="sdf" only; open3d_pnerf.fields.sdf)."""
+    proposal: float = setting(1.0, number(0))
+    """The proposal network's term (sampling.n_proposal > 0 only): its weights must bound the
+    field's (Mip-NeRF 360's interlevel loss; trains the proposal network alone)."""
     distortion: float = setting(0.0, number(0))
     """Mip-NeRF 360's distortion regulariser on every ray's weights (per metre; 0 = off), with
     any loss: pulls each ray's weights into one compact interval."""
@@ -103,6 +107,29 @@ def distortion(weights, edges) -> torch.Tensor:
     before = torch.cumsum(weights, -1) - weights  # W_<i
     before_m = torch.cumsum(weights * mid, -1) - weights * mid
     return 2 * (weights * (mid * before - before_m)).sum(-1) + (weights**2 * delta).sum(-1) / 3
+
+
+def proposal_bounds(edges, proposal_edges, proposal_weights) -> torch.Tensor:
+    """(R, S) the proposal weights' bound on each bin [e_k, e_{k+1}] of edges (R, S + 1): the sum
+    of the proposal weights (R, P) of every proposal bin on proposal_edges (R, P + 1) that
+    overlaps it (Mip-NeRF 360's outer measure)."""
+    cum = torch.cat([torch.zeros_like(proposal_weights[:, :1]), proposal_weights.cumsum(-1)], -1)
+    p = proposal_weights.shape[1]
+    # first proposal bin ending after the bin's start, last one starting before its end
+    first = torch.searchsorted(proposal_edges[:, 1:].contiguous(), edges[:, :-1].contiguous(), right=True)
+    last = torch.searchsorted(proposal_edges[:, :-1].contiguous(), edges[:, 1:].contiguous()) - 1
+    first, last = first.clamp(0, p - 1), last.clamp(0, p - 1)
+    bound = cum.gather(1, last + 1) - cum.gather(1, first)
+    return torch.where(last >= first, bound, torch.zeros_like(bound))
+
+
+def proposal_loss(weights, edges, proposal_weights, proposal_edges, eps: float = 1e-7) -> torch.Tensor:
+    """(R,) Mip-NeRF 360's interlevel loss: sum_k max(0, w_k - bound_k)^2 / w_k over the field's
+    weights (R, S) on edges (R, S + 1) (held fixed: it trains the proposal alone), bound_k the
+    proposal's (:func:`proposal_bounds`). Zero when the proposal's mass covers the field's."""
+    w = weights.detach()
+    excess = (w - proposal_bounds(edges.detach(), proposal_edges, proposal_weights)).clamp(min=0)
+    return (excess**2 / (w + eps)).sum(-1)
 
 
 def dsnerf_loss(weights, t, edges, mu, sigma, eps: float = 1e-5) -> torch.Tensor:
@@ -184,6 +211,9 @@ def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights
         terms["color"] = terms["color"] + color_l1(r.color, target_rgb) * share
         if weights.distortion > 0:
             terms["distortion"] = terms["distortion"] + distortion(r.weights, r.edges).mean() * share
+        if r.proposal_weights is not None:
+            terms["proposal"] = terms["proposal"] + proposal_loss(r.weights, r.edges, r.proposal_weights,
+                                                                  r.proposal_edges).mean() * share
         if not method.terms or not has.any():
             continue
         per_ray = method.depth_terms(r.weights[has], r.t[has], r.edges[has], mu_v, sigma_v)

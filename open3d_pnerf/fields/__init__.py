@@ -19,10 +19,11 @@ from .fields import (
     grow,
 )
 from .ndc import NDCWarp
+from .proposal import ProposalField
 from .sdf import SDFConfig
 
 __all__ = [
     "BlockEncoding", "DenseGridEncoding", "EncodedField", "FIELD_CONFIGS", "Field", "FrequencyEncoding", "GridConfig", "GridField",
-    "HashGridConfig", "HashGridEncoding", "HashGridField", "NDCWarp", "SDFConfig", "VanillaConfig", "VanillaNeRFField",
+    "HashGridConfig", "HashGridEncoding", "HashGridField", "NDCWarp", "ProposalField", "SDFConfig", "VanillaConfig", "VanillaNeRFField",
     "block_boxes", "block_table_size", "block_tables", "grow",
 ]

@@ -178,6 +178,8 @@ def grow(field: EncodedField, box, block: nn.Module) -> EncodedField:
     type) for the rest (:class:`BlockEncoding`). The field is changed in place and returned."""
     if field.warp is not None:
         raise ValueError("grow(): a field in NDC (a forward-facing capture) has no box to grow")
+    if getattr(field, "proposal", None) is not None:
+        raise ValueError("grow(): a field with a proposal network (sampling.n_proposal > 0) cannot grow its box")
     box = torch.as_tensor(box, dtype=torch.float32, device=field.aabb.device).reshape(2, 3)
     if (box[0] > field.aabb[0]).any() or (box[1] < field.aabb[1]).any():
         raise ValueError(f"grow(): the box {box.tolist()} does not hold the field's {field.aabb.tolist()}")

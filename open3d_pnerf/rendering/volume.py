@@ -20,7 +20,9 @@ class RayRender:
     t (R, S) sample distances and edges (R, S + 1) bin edges (ray-distance metres);
     weights (R, S); color (R, 3) in [0, 1]; opacity (R,) = sum of weights; depth (R,)
     expected ray distance under the normalised weights (what the depth loss trains); depth_var
-    (R,) their variance (m^2); median (R,) their median (the depth renders report).
+    (R,) their variance (m^2); median (R,) their median (the depth renders report). With a
+    proposal network: its bins proposal_edges (R, P + 1) and weights proposal_weights (R, P),
+    which placed the coarse samples.
     """
 
     t: torch.Tensor
@@ -30,6 +32,8 @@ class RayRender:
     opacity: torch.Tensor
     depth: torch.Tensor
     depth_var: torch.Tensor
+    proposal_edges: torch.Tensor | None = None
+    proposal_weights: torch.Tensor | None = None
 
     @property
     def median(self) -> torch.Tensor:
@@ -81,6 +85,10 @@ class SamplingConfig(Settings):
     depth_guided: bool = setting(True, FLAG)
     """Place the n_guided samples around the depth target when training with depth terms
     (False: extra importance samples)."""
+    n_proposal: int = setting(0, count(0))
+    """Samples per ray of a proposal network (a small density-only hash grid, trained to bound the
+    field's weights, as nerfacto's) that places the n_coarse samples by importance; 0: none, the
+    n_coarse samples are stratified."""
     n_coarse_render: int = setting(32, count(2))
     """Stratified samples per ray when rendering (views, evaluation, calibration, export), at least
     n_coarse: a coarse pass that steps over a thin structure (a table leg) never samples it finely,
@@ -120,12 +128,27 @@ def render_rays(
     sample below adds less than that to the pixel; S * color_min_weight in all). generator: the
     random numbers' source (a :class:`BatchShare` renders rows of a larger batch exactly as that
     batch would); jitter=False: samples in the middle of their slices (deterministic renders).
-    The coarse samples are even in the field's depth coordinate: in disparity for a field with
-    an NDC warp (fields.ndc), in ray distance otherwise.
+    The coarse samples are even in the field's depth coordinate (in disparity for a field with
+    an NDC warp, fields.ndc; in ray distance otherwise), or, for a field with a proposal network
+    (``field.proposal``, fields.proposal), importance samples of the proposal's weights at
+    n_proposal such samples.
     """
+    disparity = getattr(field, "warp", None) is not None  # even in NDC z
+    proposal = getattr(field, "proposal", None)
+    proposed = {}
+    with record_function("pnerf.proposal"):
+        if proposal is not None:
+            t_p = stratified(rays, sampling.n_proposal, generator, jitter, disparity)
+            e_p = bin_edges(t_p, rays.near, rays.far)
+            x_p = _points(rays, t_p)
+            w_p = render_weights((proposal(field.normalize(x_p)) * field.inside(x_p)).view_as(t_p), e_p)
+            proposed = {"proposal_edges": e_p, "proposal_weights": w_p}
     with record_function("pnerf.coarse_pass"):
-        t_c = stratified(rays, sampling.n_coarse, generator, jitter,
-                         disparity=getattr(field, "warp", None) is not None)  # even in NDC z
+        if proposal is not None:
+            t_c = importance(proposed["proposal_edges"], proposed["proposal_weights"], sampling.n_coarse, generator,
+                             jitter)
+        else:
+            t_c = stratified(rays, sampling.n_coarse, generator, jitter, disparity)
         e_c = bin_edges(t_c, rays.near, rays.far)
         x_c = _points(rays, t_c)
         one_pass = torch.is_grad_enabled() and getattr(field, "encodes_in_one_pass", False)
@@ -163,7 +186,7 @@ def render_rays(
             dirs = rays.directions[:, None, :].expand(*t.shape, 3).reshape(-1, 3)
             rgb = field.color(features.reshape(-1, features.shape[-1]), dirs).view(*t.shape, 3)
     with record_function("pnerf.composite"):
-        fine = composite(t, edges, sigma, rgb)
+        fine = dataclasses.replace(composite(t, edges, sigma, rgb), **proposed)
         coarse = None
         if with_coarse:
             is_coarse = order < sampling.n_coarse
