@@ -10,6 +10,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .camera import backproject, camera_rays
 from .data.sequence import RGBDSequence
@@ -102,9 +103,8 @@ def ndc_warp(train_seq: RGBDSequence, poses: np.ndarray, mode: str = "auto") -> 
     if rng is None:
         return None
     poses = np.asarray(poses, np.float64)
-    u, _, vt = np.linalg.svd(poses[:, :3, :3].mean(0))
     reference = np.eye(4)
-    reference[:3, :3] = u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt  # the rotation nearest the mean
+    reference[:3, :3] = Rotation.from_matrix(poses[:, :3, :3]).mean().as_matrix()  # the chordal mean
     reference[:3, 3] = poses[:, :3, 3].mean(0)
     corners = frustum_corners(train_seq.K, train_seq.image_size, poses, np.tile(rng, (len(poses), 1)))
     if ((corners - reference[:3, 3]) @ reference[:3, 2] <= 0.1 * rng[0]).any():

@@ -93,7 +93,10 @@ def test_a_gaussian_depth_targets_mass_is_kept_across_the_warp():
     def density_in_ndc(z):  # t = 2 near / (1 - z), dt/dz = 2 near / (1 - z)^2
         return norm.pdf(2 * near / (1 - z), mu, sigma) * 2 * near / (1 - z) ** 2
 
-    z_edges = 1 - 2 * near / edges[0].numpy()
+    warp = NDCWarp(np.eye(4), K, (H, W), near, [[-1, -1, -1], [1, 1, 1]]).double()  # the ray: its optical axis
+    on_axis = torch.zeros(edges.shape[1], 3, dtype=torch.float64)
+    on_axis[:, 2] = edges[0]
+    z_edges = warp.ndc(on_axis)[:, 2].numpy()
     inside = norm.cdf(far, mu, sigma) - norm.cdf(near, mu, sigma)
     expected = [quad(density_in_ndc, a, b)[0] / inside for a, b in zip(z_edges[:-1], z_edges[1:])]
     np.testing.assert_allclose(mass.numpy(), expected, atol=1e-9)
@@ -106,11 +109,16 @@ def test_which_sequences_get_ndc(tmp_path, monkeypatch):
     assert isinstance(warp, NDCWarp) and ndc_warp(llff, llff.sfm.poses, "off") is None
     near = 0.9 * llff.sfm.bounds[:, 0].min()
     assert warp.near == pytest.approx(near)
-    # every training frustum over [near, far] lies in the NDC box
+    # every training frame's view (its image's corners and centre) between the near plane and its
+    # far bound lies inside the NDC box
+    h, w = llff.image_size
+    pixels = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [-0.5, h - 0.5, 1], [w - 0.5, h - 0.5, 1],
+                       [w / 2, h / 2, 1]])
+    rays = pixels @ np.linalg.inv(llff.K).T  # camera frame, unit z
     for pose, bound in zip(llff.sfm.poses, llff.sfm.bounds):
         for depth in (near, bound[1]):
-            corner = pose[:3, :3] @ (np.linalg.inv(llff.K) @ [0, 0, 1.0]) * depth + pose[:3, 3]
-            u = warp.normalize(torch.tensor(corner[None], dtype=torch.float32))
+            points = rays * depth @ pose[:3, :3].T + pose[:3, 3]
+            u = warp.normalize(torch.tensor(points, dtype=torch.float32))
             assert ((u > 0) & (u < 1)).all()
     rgbd = synthetic_sequence(n_frames=3, width=32, height=24, seed=0).sequence
     assert ndc_warp(rgbd, rgbd.gt_poses) is None

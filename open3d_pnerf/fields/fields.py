@@ -55,6 +55,7 @@ class Field(nn.Module):
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3))
         self.bf16 = bf16
         self.warp = None  # an NDCWarp (fields.ndc): the field's input is NDC instead of the box
+        self.proposal = None  # a ProposalField (fields.proposal) that places the coarse samples
 
     def mlp_precision(self, x: torch.Tensor):
         """The autocast context of the MLPs for inputs on x's device (off unless bf16 on CPU or CUDA)."""
@@ -178,7 +179,7 @@ def grow(field: EncodedField, box, block: nn.Module) -> EncodedField:
     type) for the rest (:class:`BlockEncoding`). The field is changed in place and returned."""
     if field.warp is not None:
         raise ValueError("grow(): a field in NDC (a forward-facing capture) has no box to grow")
-    if getattr(field, "proposal", None) is not None:
+    if field.proposal is not None:
         raise ValueError("grow(): a field with a proposal network (sampling.n_proposal > 0) cannot grow its box")
     box = torch.as_tensor(box, dtype=torch.float32, device=field.aabb.device).reshape(2, 3)
     if (box[0] > field.aabb[0]).any() or (box[1] < field.aabb[1]).any():

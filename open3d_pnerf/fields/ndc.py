@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..camera import project
+
 BOX_PAD = 0.02  # the NDC box's margin on every side, as a share of its size
 
 
@@ -34,23 +36,20 @@ class NDCWarp(nn.Module):
         self.register_buffer("rotation", torch.as_tensor(c2w[:3, :3].T, dtype=torch.float32), persistent=False)
         self.register_buffer("centre", torch.as_tensor(c2w[:3, 3], dtype=torch.float32), persistent=False)
         K = np.asarray(K, np.float64).reshape(3, 3)
-        h, w = image_size
-        # X = 2 (u + 0.5) / W - 1 with u = fx x / z + cx: a scale and an offset per image axis
-        self.register_buffer("scale", torch.tensor([2 * K[0, 0] / w, 2 * K[1, 1] / h], dtype=torch.float32),
-                             persistent=False)
-        self.register_buffer("offset", torch.tensor([(2 * K[0, 2] + 1) / w - 1, (2 * K[1, 2] + 1) / h - 1],
-                                                    dtype=torch.float32), persistent=False)
+        self.register_buffer("intrinsic", torch.as_tensor(K, dtype=torch.float32), persistent=False)
         self.register_buffer("box", torch.as_tensor(np.asarray(box), dtype=torch.float32).reshape(2, 3),
                              persistent=False)
+        h, w = image_size
         self.camera_to_world, self.K, self.image_size, self.near = c2w, K, (int(h), int(w)), float(near)
 
     def ndc(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 3) NDC of world points x (B, 3). Points at or behind the reference camera's plane
         (z <= 0) map far outside [-1, 1]^3 (finite)."""
         p = (x - self.centre) @ self.rotation.T
-        z = p[:, 2:].clamp(min=1e-6 * self.near)
-        xy = p[:, :2] / z * self.scale + self.offset
-        return torch.cat([xy, 1 - 2 * self.near / z], -1)
+        z = p[:, 2].clamp(min=1e-6 * self.near)
+        u, v = project(self.intrinsic, torch.cat([p[:, :2], z[:, None]], 1))
+        h, w = self.image_size
+        return torch.stack([2 * (u + 0.5) / w - 1, 2 * (v + 0.5) / h - 1, 1 - 2 * self.near / z], -1)
 
     def normalize(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 3) coordinates of world points x (B, 3) in the NDC box, [0, 1]^3 inside it."""

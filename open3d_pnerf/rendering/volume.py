@@ -135,18 +135,13 @@ def render_rays(
     """
     disparity = getattr(field, "warp", None) is not None  # even in NDC z
     proposal = getattr(field, "proposal", None)
-    proposed = {}
-    with record_function("pnerf.proposal"):
+    with record_function("pnerf.coarse_pass"):  # the proposal network's samples count in it
         if proposal is not None:
             t_p = stratified(rays, sampling.n_proposal, generator, jitter, disparity)
             e_p = bin_edges(t_p, rays.near, rays.far)
             x_p = _points(rays, t_p)
             w_p = render_weights((proposal(field.normalize(x_p)) * field.inside(x_p)).view_as(t_p), e_p)
-            proposed = {"proposal_edges": e_p, "proposal_weights": w_p}
-    with record_function("pnerf.coarse_pass"):
-        if proposal is not None:
-            t_c = importance(proposed["proposal_edges"], proposed["proposal_weights"], sampling.n_coarse, generator,
-                             jitter)
+            t_c = importance(e_p, w_p, sampling.n_coarse, generator, jitter)
         else:
             t_c = stratified(rays, sampling.n_coarse, generator, jitter, disparity)
         e_c = bin_edges(t_c, rays.near, rays.far)
@@ -186,7 +181,9 @@ def render_rays(
             dirs = rays.directions[:, None, :].expand(*t.shape, 3).reshape(-1, 3)
             rgb = field.color(features.reshape(-1, features.shape[-1]), dirs).view(*t.shape, 3)
     with record_function("pnerf.composite"):
-        fine = dataclasses.replace(composite(t, edges, sigma, rgb), **proposed)
+        fine = composite(t, edges, sigma, rgb)
+        if proposal is not None:  # what its loss needs
+            fine.proposal_edges, fine.proposal_weights = e_p, w_p
         coarse = None
         if with_coarse:
             is_coarse = order < sampling.n_coarse
