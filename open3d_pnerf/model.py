@@ -17,7 +17,7 @@ from torch import nn
 from torch.profiler import record_function
 
 from .batches import RayBatch
-from .fields.sdf import eikonal_loss, eikonal_points
+from .fields.sdf import depth_sdf_loss, eikonal_loss, eikonal_points, surface_distance
 from .losses import LossMethod, LossWeights, loss_method, total_loss
 from .pose_refinement import PoseCorrections, follow_refinement
 from .rendering import BatchShare, RayRender, Rays, SamplingConfig, make_rays, render_rays
@@ -92,12 +92,23 @@ class PNeRFModel(nn.Module):
                            batch.weight)
         share = 1.0 if n_rays is None else len(batch) / n_rays  # this rank's part of the batch
         sdf = getattr(self.field, "sdf", None)
-        if sdf is not None and weights.eikonal > 0:
+        if sdf is not None:
             rays = self.rays(batch)
-            points = eikonal_points(self.field.aabb, rays.origins.detach(), rays.directions.detach(), rays.near,
-                                    rays.far, max(1, round(sdf.eikonal_points * share)))
-            terms["eikonal"] = eikonal_loss(self.field.signed_distance, points, sdf.eikonal_step)
-            terms["loss"] = terms["loss"] + weights.eikonal * terms["eikonal"] * share
+            origins, directions = rays.origins.detach(), rays.directions.detach()
+            if weights.eikonal > 0:
+                points = eikonal_points(self.field.aabb, origins, directions, rays.near, rays.far,
+                                        max(1, round(sdf.eikonal_points * share)))
+                terms["eikonal"] = eikonal_loss(self.field.signed_distance, points, sdf.eikonal_step)
+                terms["loss"] = terms["loss"] + weights.eikonal * terms["eikonal"] * share
+            if (weights.sdf_surface > 0 or weights.sdf_free > 0) and self.loss_method.terms:
+                has = torch.isfinite(batch.mean)
+                direct = depth_sdf_loss(self.field.signed_distance, origins[has], directions[has], rays.near[has],
+                                        batch.mean[has], batch.sigma[has], batch.weight[has], sdf.truncation,
+                                        sdf.band_points, sdf.free_points)
+                part = has.sum() / (n_target if n_target is not None else max(int(has.sum()), 1))
+                for name, value in direct.items():
+                    terms[name] = value
+                    terms["loss"] = terms["loss"] + getattr(weights, name) * value * part
         if self.pose_corrections is not None:  # each share of a batch adds its part of the prior
             terms["pose_prior"] = self.pose_corrections.prior()
             terms["loss"] = terms["loss"] + self.pose_prior_weight * terms["pose_prior"] * share
@@ -115,16 +126,24 @@ class PNeRFModel(nn.Module):
         Returns the :class:`~open3d_pnerf.rendering.RayRender` fields named by `keys`: by default
         color (R, 3), depth (R,) expected ray distance, depth_var (R,), opacity (R,); also
         median (R,) median ray distance, t (R, S), edges (R, S + 1), weights (R, S) with
-        S = max(n_coarse, n_coarse_render) + n_fine + n_guided.
+        S = max(n_coarse, n_coarse_render) + n_fine + n_guided; for a signed-distance field also
+        surface (R,) the ray distance of its first zero crossing (NaN where the ray meets none,
+        :func:`~open3d_pnerf.fields.sdf.surface_distance`).
         """
         outs = {k: [] for k in keys}
         sampling = self.sampling.for_render()
         for start in range(0, len(rays), chunk):
-            render, _ = render_rays(self.field, rays[start : start + chunk], sampling, jitter=False,
-                                    color_min_weight=VIEW_COLOR_MIN_WEIGHT)
+            part = rays[start : start + chunk]
+            render, _ = render_rays(self.field, part, sampling, jitter=False, color_min_weight=VIEW_COLOR_MIN_WEIGHT)
             for k in outs:
-                outs[k].append(getattr(render, k))
+                outs[k].append(self._surface(part, render) if k == "surface" else getattr(render, k))
         return {k: torch.cat(v) for k, v in outs.items()}
+
+    def _surface(self, rays: Rays, render: RayRender) -> torch.Tensor:
+        if getattr(self.field, "sdf", None) is None:
+            raise TypeError("render(): 'surface' is the zero crossing of a signed-distance field (geometry='sdf')")
+        return surface_distance(self.field.signed_distance, rays.origins, rays.directions, render.t, render.density,
+                                self.field.beta)
 
     def frames_after_training(self, poses: np.ndarray, timestamps: np.ndarray, train_idx: np.ndarray,
                               hold_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

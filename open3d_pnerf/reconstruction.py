@@ -144,7 +144,8 @@ class Reconstruction:
         frame: index of one of the reconstruction's frames whose camera exposure the colour
         should have (``color_gains[frame]``); None gives the training frames' average exposure.
         Returns numpy arrays: color (H, W, 3) float32 in [0, 1], depth (H, W) z-depth m (the
-        median of the ray's termination distribution), depth_std (H, W) m (the spread of the
+        median of the ray's termination distribution; a signed-distance field's surface, its first
+        zero crossing, where the ray meets one), depth_std (H, W) m (the spread of the
         model's depth distribution along each ray, made a calibrated 1-sigma error by
         :attr:`depth_error`; where the rendered point lies away
         from every surface the training frames' depth observed, :attr:`observed`, the law's
@@ -168,12 +169,14 @@ class Reconstruction:
 
     def render_pixels(self, pose: np.ndarray, intrinsic, u: torch.Tensor, v: torch.Tensor, chunk: int = 2048) -> dict:
         """Numpy color (R, 3) in [0, 1], z-depth depth (of the median ray distance: see
-        :attr:`~open3d_pnerf.rendering.RayRender.median`) and raw (uncalibrated) depth_std (R,) m (the
-        spread of the ray's weights), opacity (R,) of pixels (u, v) (R,) of a camera-to-world pose
-        (4, 4) with `intrinsic`."""
+        :attr:`~open3d_pnerf.rendering.RayRender.median`; a signed-distance field's surface where the
+        ray meets it) and raw (uncalibrated) depth_std (R,) m (the spread of the ray's weights),
+        opacity (R,) of pixels (u, v) (R,) of a camera-to-world pose (4, 4) with `intrinsic`."""
         rays = self._rays(pose, intrinsic, u, v)
-        out = self.model.render(rays, chunk, keys=("color", "median", "depth_var", "opacity"))
-        return {"color": out["color"].clamp(0, 1).cpu().numpy(), "depth": (out["median"] / rays.norms).cpu().numpy(),
+        surface = ("surface",) if getattr(self.field, "sdf", None) is not None else ()
+        out = self.model.render(rays, chunk, keys=("color", "median", "depth_var", "opacity") + surface)
+        depth = out["median"] if not surface else torch.where(out["surface"].isfinite(), out["surface"], out["median"])
+        return {"color": out["color"].clamp(0, 1).cpu().numpy(), "depth": (depth / rays.norms).cpu().numpy(),
                 "depth_std": (out["depth_var"].sqrt() / rays.norms).cpu().numpy(),
                 "opacity": out["opacity"].cpu().numpy()}
 

@@ -7,7 +7,8 @@ import torch
 
 import open3d_pnerf as pn
 from open3d_pnerf.errors import ConfigError
-from open3d_pnerf.fields.sdf import eikonal_loss, finite_difference_gradient, laplace_cdf, sdf_density
+from open3d_pnerf.fields.sdf import (depth_sdf_loss, depth_sdf_samples, eikonal_loss, finite_difference_gradient,
+                                    laplace_cdf, sdf_density, surface_distance)
 from open3d_pnerf.rendering.volume import render_weights
 from open3d_pnerf.tsdf import level_set_mesh
 
@@ -48,6 +49,77 @@ def test_eikonal_term_is_zero_for_an_exact_distance_field():
     g = finite_difference_gradient(sphere, x, 0.005)
     assert torch.allclose(g, (x - centre) / (x - centre).norm(dim=-1, keepdim=True), atol=1e-3)
     assert eikonal_loss(lambda p: 2 * sphere(p), x, 0.005).item() == pytest.approx(1.0, abs=1e-3)
+
+
+def _rays_at_a_plane(n=64, z0=1.5):
+    """Rays from the origin to the plane z = z0 (the camera looks along +z): origins, unit
+    directions, near ends, and each ray's distance to the plane."""
+    torch.manual_seed(0)
+    d = torch.cat([1.6 * (torch.rand(n, 2) - 0.5), torch.ones(n, 1)], 1)
+    d = d / d.norm(dim=-1, keepdim=True)
+    return torch.zeros(n, 3), d, torch.full((n,), 0.1), z0 / d[:, 2]
+
+
+def test_depth_sdf_samples_lie_in_the_band_and_in_front_of_it():
+    near, mu = torch.tensor([0.1, 0.5, 1.0]), torch.tensor([2.0, 0.52, 1.0])
+    band, free = depth_sdf_samples(near, mu, 0.05, 200, 200)
+    assert ((band - mu[:, None]).abs() <= 0.05).all() and band.shape == (3, 200)
+    assert (free <= mu[:, None] - 0.05 + 1e-6).all()
+    assert (free[0] >= 0.1).all() and free[0].max() > 1.9 and free[0].min() < 0.2  # spans [near, mu - 0.05]
+    assert torch.allclose(free[1], torch.tensor(0.47)) and torch.allclose(free[2], torch.tensor(0.95))  # no room
+
+
+def test_depth_sdf_terms_vanish_for_the_exact_distance_and_measure_a_shift():
+    # a plane z = 1.5 seen head-on and obliquely: its exact signed distance 1.5 - z keeps every
+    # free point within [0, mu - t] (the projective bound), and fits mu - t in the band up to the
+    # obliqueness (mu - t = (1.5 - z) / cos); a plane moved 2 cm nearer costs 2 cm in the band
+    o, d, near, mu = _rays_at_a_plane()
+    cos = d[:, 2]
+    sigma, weight = torch.full_like(mu, 0.01), torch.ones_like(mu)
+    exact = lambda x: 1.5 - x[:, 2]  # noqa: E731
+    terms = depth_sdf_loss(exact, o, d, near, mu, sigma, weight, 0.05, 16, 16)
+    assert terms["sdf_free"].item() < 1e-7
+    expected = (1 - cos).mean().item() * 0.05 / 2  # |mu - t| (1 - cos), |mu - t| 2.5 cm on average in the band
+    assert expected > 2e-3 and terms["sdf_surface"].item() == pytest.approx(expected, rel=0.1)
+    head_on = (torch.zeros(8, 3), torch.tensor([[0.0, 0.0, 1.0]]).repeat(8, 1), torch.full((8,), 0.1),
+               torch.full((8,), 1.5), torch.full((8,), 0.01), torch.ones(8))
+    assert depth_sdf_loss(exact, *head_on, 0.05, 16, 16)["sdf_surface"].item() < 1e-6
+    nearer = depth_sdf_loss(lambda x: 1.48 - x[:, 2], *head_on, 0.05, 16, 16)
+    assert nearer["sdf_surface"].item() == pytest.approx(0.02, rel=1e-4)
+    # negative in free space, or beyond the projective bound, is penalised by how far
+    assert depth_sdf_loss(lambda x: 1.5 - x[:, 2] - 1.0, *head_on, 0.05, 0, 16)["sdf_free"].item() > 0.1
+    assert depth_sdf_loss(lambda x: 2 * (1.5 - x[:, 2]), *head_on, 0.05, 0, 16)["sdf_free"].item() > 0.1
+
+
+def test_depth_sdf_band_term_trusts_a_target_by_its_sigma():
+    o, d, near = torch.zeros(4, 3), torch.tensor([[0.0, 0.0, 1.0]]).repeat(4, 1), torch.full((4,), 0.1)
+    mu, weight = torch.full((4,), 1.5), torch.ones(4)
+    shifted = lambda x: 1.48 - x[:, 2]  # noqa: E731
+    sharp = depth_sdf_loss(shifted, o, d, near, mu, torch.full((4,), 0.01), weight, 0.05, 8, 0)["sdf_surface"]
+    wide = depth_sdf_loss(shifted, o, d, near, mu, torch.full((4,), 0.2), weight, 0.05, 8, 0)["sdf_surface"]
+    assert wide.item() == pytest.approx(sharp.item() * 0.05 / 0.2, rel=1e-4)
+    none = depth_sdf_loss(shifted, o[:0], d[:0], near[:0], mu[:0], mu[:0], weight[:0], 0.05, 8, 8)
+    assert none["sdf_surface"].item() == 0 and none["sdf_free"].item() == 0
+
+
+def test_surface_distance_finds_the_first_zero_crossing_between_samples():
+    # rays from the origin at a sphere of radius 0.3 centred 1.5 m ahead, and behind it a wall at
+    # z = 3: the first crossing is the sphere's near side (closed form), between coarse samples
+    # 10 cm apart; a ray that misses the sphere meets the wall; one that meets nothing gets NaN
+    centre, radius, beta = torch.tensor([0.0, 0.0, 1.5]), 0.3, 0.02
+    scene = lambda x: torch.minimum((x - centre).norm(dim=-1) - radius, 3.0 - x[:, 2])  # noqa: E731
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.1, 0.05, 1.0], [0.5, 0.0, 1.0]])
+    d = d / d.norm(dim=-1, keepdim=True)
+    o = torch.zeros(3, 3)
+    t = torch.linspace(0.05, 2.45, 25)[None].repeat(3, 1)  # short of the wall on the first two rays
+    t[2] = torch.linspace(0.05, 4.0, 25)
+    density = sdf_density(scene((o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)).view(t.shape), beta)
+    found = surface_distance(scene, o, d, t, density, beta)
+    b = (d[:2] * centre).sum(-1)  # the sphere's near side: t = b - sqrt(b^2 - |c|^2 + r^2)
+    exact = b - (b ** 2 - centre.norm() ** 2 + radius ** 2).sqrt()
+    assert torch.allclose(found[:2], exact, atol=1e-4)
+    assert found[2].item() == pytest.approx(3.0 / d[2, 2].item(), abs=1e-4)
+    assert surface_distance(scene, o, d, t, torch.zeros_like(density), beta).isnan().all()
 
 
 def test_level_set_mesh_of_a_sphere_lies_within_a_voxel_of_it():
@@ -108,3 +180,12 @@ def test_an_sdf_reconstruction_trains_with_the_eikonal_term_and_exports_its_zero
     with torch.no_grad():
         sdf = recon.field.signed_distance(torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32))
     assert sdf.abs().median().item() < config.export.mesh_voxel_size
+    # its depth is its surface: the signed distance at the rendered depth of a held-out view is ~0
+    i = recon.holdout_indices[0]
+    view = recon.render(recon.poses[i])
+    rays = recon._rays(recon.poses[i], recon.intrinsic, torch.arange(0, view["depth"].shape[1], 7.0),
+                       torch.full((len(range(0, view["depth"].shape[1], 7)),), view["depth"].shape[0] / 2))
+    z = torch.as_tensor(view["depth"][view["depth"].shape[0] // 2, ::7])
+    with torch.no_grad():
+        at_depth = recon.field.signed_distance(rays.origins + (z * rays.norms)[:, None] * rays.directions)
+    assert at_depth.abs().median().item() < 1e-3

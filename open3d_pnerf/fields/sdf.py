@@ -7,6 +7,17 @@ density(x) = Psi_beta(-sdf(x)) / beta, Psi_beta the CDF of a zero-mean Laplace l
 mean (|grad sdf| - 1)^2 keeps sdf a distance; its gradient is taken by central finite
 differences (as Neuralangelo does on hash grids), so no second derivative of the grid encoding is
 needed.
+
+Depth targets also supervise the distance itself near and in front of the surface they measure,
+as GO-Surf does (Wang et al., 3DV 2022): a point at ray distance t of a ray whose target depth is
+mu lies at most mu - t from a surface (the projective distance bounds the true one), and close to
+the surface that bound is the distance. Within `truncation` of mu the sdf is fitted to mu - t
+(L1, m), scaled by each ray's target weight and its confidence (truncation / max(truncation,
+sigma)); in front of that band it must lie in [0, mu - t] (a hinge on each side).
+
+The depth such a field reports is its surface: the first zero crossing of the signed distance
+along the ray (:func:`surface_distance`), not the median of the rendered weights, which a ray
+that grazes a surface within a few beta spreads in front of it.
 """
 
 from __future__ import annotations
@@ -33,6 +44,14 @@ class SDFConfig(Settings):
     eikonal_points: int = setting(1024, count(1))
     """Points per training step that the eikonal term is evaluated at: half uniform in the scene
     box, half along the batch's rays."""
+    truncation: float = setting(0.05, number(0, low_open=True, unit="metres"))
+    """Half-width (m) of the band around each depth target where the sdf is fitted to the
+    projective distance (objective.weights.sdf_surface); in front of it the free-space bound holds
+    (objective.weights.sdf_free)."""
+    band_points: int = setting(8, count(0))
+    """Points per ray with a depth target drawn uniformly in the band mu +- truncation."""
+    free_points: int = setting(8, count(0))
+    """Points per ray with a depth target drawn uniformly between the ray's near end and the band."""
 
 
 def laplace_cdf(s: torch.Tensor, beta: torch.Tensor | float) -> torch.Tensor:
@@ -71,3 +90,66 @@ def eikonal_points(aabb: torch.Tensor, origins: torch.Tensor, directions: torch.
     pick = torch.randint(len(origins), (n - half,), device=device, generator=generator)
     t = near[pick] + (far[pick] - near[pick]) * torch.rand(n - half, device=device, generator=generator)
     return torch.cat([box, origins[pick] + t[:, None] * directions[pick]])
+
+
+def depth_sdf_samples(near: torch.Tensor, mu: torch.Tensor, truncation: float, n_band: int, n_free: int,
+                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ray distances (m) of the depth-supervised sdf points of R rays with near ends near (R,)
+    and depth targets mu (R,): (R, n_band) uniform in [mu - truncation, mu + truncation] and
+    (R, n_free) uniform in [near, mu - truncation] (empty where the band starts before near)."""
+    device = mu.device
+    band = mu[:, None] + truncation * (2 * torch.rand(len(mu), n_band, device=device, generator=generator) - 1)
+    start = torch.minimum(near, mu - truncation)
+    free = start[:, None] + (mu - truncation - start)[:, None] * torch.rand(len(mu), n_free, device=device,
+                                                                         generator=generator)
+    return band, free
+
+
+def depth_sdf_loss(sdf, origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor, mu: torch.Tensor,
+                   sigma: torch.Tensor, weight: torch.Tensor, truncation: float, n_band: int, n_free: int,
+                   generator: torch.Generator | None = None) -> dict:
+    """The depth targets' direct sdf terms (see the module docstring) of R rays (origins, unit
+    directions (R, 3), near ends (R,) m) with targets mu, sigma (R,) ray-distance m (all finite)
+    and target weights (R,): {"sdf_surface": mean |sdf - (mu - t)| in the band (m),
+    "sdf_free": mean of relu(-sdf) + relu(sdf - (mu - t)) in front of it (m)}, means over the
+    points of every ray (zero without rays). sdf: (M, 3) -> (M,) signed distance in metres."""
+    zero = origins.new_zeros(())
+    if len(mu) == 0:
+        return {"sdf_surface": zero, "sdf_free": zero}
+    band, free = depth_sdf_samples(near, mu, truncation, n_band, n_free, generator)
+    t = torch.cat([band, free], 1)
+    values = sdf((origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)).reshape(t.shape)
+    bound = mu[:, None] - t
+    confidence = weight * truncation / sigma.clamp(min=truncation)
+    surface = ((values[:, :n_band] - bound[:, :n_band]).abs() * confidence[:, None]).mean() if n_band else zero
+    free_values, free_bound = values[:, n_band:], bound[:, n_band:]
+    free_term = ((torch.relu(-free_values) + torch.relu(free_values - free_bound)) * weight[:, None]).mean() \
+        if n_free else zero
+    return {"sdf_surface": surface, "sdf_free": free_term}
+
+
+def surface_distance(signed_distance, origins: torch.Tensor, directions: torch.Tensor, t: torch.Tensor,
+                     density: torch.Tensor, beta: torch.Tensor | float, steps: int = 8) -> torch.Tensor:
+    """(R,) ray distance (m) of the first zero crossing of the signed distance along each of R rays
+    (origins, unit directions (R, 3)) rendered at samples t (R, S) (sorted) with densities density
+    (R, S) (1/m, of :func:`sdf_density` with scale beta): the first sample whose density exceeds
+    the surface's 1 / (2 beta) (sdf < 0) and the sample before it bracket the crossing, `steps`
+    bisections of signed_distance ((M, 3) -> (M,) m) narrow it, and a linear interpolation of the
+    last bracket places it. NaN where no sample is inside a surface or the first one is."""
+    inside = density * beta > 0.5
+    first = inside.float().argmax(1)
+    rows = (inside.any(1) & (first > 0)).nonzero(as_tuple=True)[0]
+    out = torch.full((len(t),), float("nan"), device=t.device)
+    if not len(rows):
+        return out
+    k = first[rows, None]
+    lo, hi = t[rows].gather(1, k - 1)[:, 0], t[rows].gather(1, k)[:, 0]
+    o, d = origins[rows], directions[rows]
+    for _ in range(steps):
+        mid = (lo + hi) / 2
+        negative = signed_distance(o + mid[:, None] * d) < 0
+        lo, hi = torch.where(negative, lo, mid), torch.where(negative, mid, hi)
+    s_lo, s_hi = signed_distance(o + lo[:, None] * d), signed_distance(o + hi[:, None] * d)
+    share = (s_lo / (s_lo - s_hi).clamp(min=1e-12)).clamp(0, 1)
+    out[rows] = lo + share * (hi - lo)
+    return out

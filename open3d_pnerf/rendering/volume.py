@@ -20,7 +20,8 @@ class RayRender:
     t (R, S) sample distances and edges (R, S + 1) bin edges (ray-distance metres);
     weights (R, S); color (R, 3) in [0, 1]; opacity (R,) = sum of weights; depth (R,)
     expected ray distance under the normalised weights (what the depth loss trains); depth_var
-    (R,) their variance (m^2); median (R,) their median (the depth renders report). With a
+    (R,) their variance (m^2); median (R,) their median (the depth renders report); density
+    (R, S) the densities (1/m) they were composited from. With a
     proposal network: its bins proposal_edges (R, P + 1) and weights proposal_weights (R, P),
     which placed the coarse samples.
     """
@@ -32,6 +33,7 @@ class RayRender:
     opacity: torch.Tensor
     depth: torch.Tensor
     depth_var: torch.Tensor
+    density: torch.Tensor | None = None
     proposal_edges: torch.Tensor | None = None
     proposal_weights: torch.Tensor | None = None
 
@@ -69,7 +71,7 @@ def composite(t, edges, sigma, rgb) -> RayRender:
     depth = (p * t).sum(-1)
     depth_var = (p * (t - depth[:, None]) ** 2).sum(-1)
     color = (w[..., None] * rgb).sum(1)
-    return RayRender(t, edges, w, color, opacity, depth, depth_var)
+    return RayRender(t, edges, w, color, opacity, depth, depth_var, sigma)
 
 
 @dataclasses.dataclass
