@@ -98,7 +98,7 @@ def run_one(spec: dict) -> dict:
     return {**{k: spec[k] for k in ("dataset", "loss", "seed")}, "views": len(recon.train_indices), "table": table,
             "ensemble_train_s": ensemble_s,
             "mesh_triangles": len(recon.mesh.triangles),
-            "sdf_beta": float(recon.field.beta) if getattr(recon.field, "sdf", None) is not None else None,
+            "sdf_beta": recon.field.beta.item() if getattr(recon.field, "sdf", None) is not None else None,
             "train_s": recon.stats["training"]["seconds"],
             "steps": recon.stats["training"]["steps"], "export_s": recon.stats["timings"]["export_s"],
             "compare_s": round(compare_s, 1)}

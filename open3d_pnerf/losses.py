@@ -43,8 +43,8 @@ class LossWeights(Settings):
     """Eikonal term mean (|grad sdf| - 1)^2 (geometry="sdf" only; open3d_pnerf.fields.sdf)."""
     sdf_surface: float = setting(10.0, number(0))
     """The sdf fitted to the projective distance mu - t near each depth target, per metre
-    (geometry="sdf" only; open3d_pnerf.fields.sdf). Not decayed over training. 10 was chosen on
-    the synthetic room's 10 views (1: mesh accuracy 16.8 mm; 10: 9.8; 50: 9.7, held-out depth worse)."""
+    (geometry="sdf" only; open3d_pnerf.fields.sdf). Not decayed over training. Chosen with
+    sdf_free on the synthetic room (benchmarks/README.md: where the constants come from)."""
     sdf_free: float = setting(10.0, number(0))
     """The sdf kept in [0, mu - t] in front of each depth target, per metre (geometry="sdf" only)."""
     proposal: float = setting(1.0, number(0))

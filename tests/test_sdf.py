@@ -159,6 +159,9 @@ def test_an_sdf_field_derives_its_density_from_its_signed_distance():
     ({"geometry": "sdf", "sdf.eikonal_step": 0.0}, "sdf.eikonal_step"),
     ({"geometry": "sdf", "field": "vanilla"}, "geometry"),
     ({"geometry": "sdf", "sdf.max_sharpness": 10.0}, "sdf.max_sharpness"),
+    ({"geometry": "sdf", "sdf.truncation": 0.0}, "sdf.truncation"),
+    ({"geometry": "sdf", "sdf.band_points": -1}, "sdf.band_points"),
+    ({"geometry": "sdf", "objective.weights.sdf_surface": -1.0}, "sdf_surface"),
     ({"geometry": "surface"}, "geometry"),
 ])
 def test_bad_sdf_settings_name_the_field(overrides, named):
