@@ -70,8 +70,10 @@ class ReconstructionConfig(Settings):
     settings are the sub-config of the same name."""
     geometry: str = setting("density", one_of(("density", "sdf")))
     """"density": the field's density is free (NeRF); "sdf": it is derived from a learned signed
-    distance (VolSDF), trained with an eikonal term (objective.weights.eikonal), whose zero level
-    set is a surface; a grid field (hashgrid or grid) only. Its settings: the sub-config sdf."""
+    distance (VolSDF), trained with an eikonal term (objective.weights.eikonal) and, with depth
+    targets, fitted to them directly (objective.weights.sdf_surface, sdf_free), whose zero level
+    set is a surface and whose depth is that surface; a grid field (hashgrid or grid) only. Its
+    settings: the sub-config sdf."""
     ndc: str = setting("auto", one_of(("auto", "on", "off")))
     """The field's input coordinates: "on" normalized device coordinates of the training
     frames' mean camera (NeRF's for forward-facing captures: resolution that follows the image at

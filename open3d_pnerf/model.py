@@ -85,9 +85,11 @@ class PNeRFModel(nn.Module):
 
     def loss(self, renders: list[RayRender], batch: RayBatch, weights: LossWeights,
              n_rays: int | None = None, n_target: int | None = None) -> dict:
-        """Loss terms of :func:`~open3d_pnerf.losses.total_loss`, plus the eikonal term of a signed
-        distance field (at points in the box and along the batch's rays) and the pose prior when
-        poses are refined. n_rays, n_target: the whole batch's counts when `batch` is one rank's share."""
+        """Loss terms of :func:`~open3d_pnerf.losses.total_loss`, plus, for a signed distance field,
+        the eikonal term (at points in the box and along the batch's rays) and the depth targets'
+        direct terms sdf_surface and sdf_free (with a loss that has depth terms;
+        :func:`~open3d_pnerf.fields.sdf.depth_sdf_loss`: they move the field, not the poses), and the
+        pose prior when poses are refined. n_rays, n_target: the whole batch's counts when `batch` is one rank's share."""
         terms = total_loss(self.loss_method, renders, batch.rgb, batch.mean, batch.sigma, weights, n_rays, n_target,
                            batch.weight)
         share = 1.0 if n_rays is None else len(batch) / n_rays  # this rank's part of the batch
@@ -104,8 +106,9 @@ class PNeRFModel(nn.Module):
                 has = torch.isfinite(batch.mean)
                 direct = depth_sdf_loss(self.field.signed_distance, origins[has], directions[has], rays.near[has],
                                         batch.mean[has], batch.sigma[has], batch.weight[has], sdf.truncation,
-                                        sdf.band_points, sdf.free_points)
-                part = has.sum() / (n_target if n_target is not None else max(int(has.sum()), 1))
+                                        sdf.band_points if weights.sdf_surface > 0 else 0,
+                                        sdf.free_points if weights.sdf_free > 0 else 0, self.field.inside)
+                part = has.sum() / max(n_target if n_target is not None else int(has.sum()), 1)
                 for name, value in direct.items():
                     terms[name] = value
                     terms["loss"] = terms["loss"] + getattr(weights, name) * value * part

@@ -60,13 +60,15 @@ def _rays_at_a_plane(n=64, z0=1.5):
     return torch.zeros(n, 3), d, torch.full((n,), 0.1), z0 / d[:, 2]
 
 
-def test_depth_sdf_samples_lie_in_the_band_and_in_front_of_it():
-    near, mu = torch.tensor([0.1, 0.5, 1.0]), torch.tensor([2.0, 0.52, 1.0])
-    band, free = depth_sdf_samples(near, mu, 0.05, 200, 200)
-    assert ((band - mu[:, None]).abs() <= 0.05).all() and band.shape == (3, 200)
-    assert (free <= mu[:, None] - 0.05 + 1e-6).all()
-    assert (free[0] >= 0.1).all() and free[0].max() > 1.9 and free[0].min() < 0.2  # spans [near, mu - 0.05]
-    assert torch.allclose(free[1], torch.tensor(0.47)) and torch.allclose(free[2], torch.tensor(0.95))  # no room
+def test_depth_sdf_samples_lie_in_the_band_and_in_front_of_three_sigmas():
+    near, mu = torch.tensor([0.1, 0.5, 1.0, 0.1]), torch.tensor([2.0, 0.52, 1.0, 2.0])
+    sigma = torch.tensor([0.01, 0.01, 0.01, 0.1])
+    band, free, has_free = depth_sdf_samples(near, mu, sigma, 0.05, 200, 200)
+    assert ((band - mu[:, None]).abs() <= 0.05).all() and band.shape == (4, 200)
+    end = mu - torch.clamp(3 * sigma, min=0.05)  # the band's start, or three sigmas before mu
+    assert (free <= end[:, None] + 1e-6).all() and (free[[0, 3]] >= 0.1).all()
+    assert free[0].max() > 1.9 and free[0].min() < 0.2 and free[3].max() > 1.65 and free[3].max() <= 1.7
+    assert has_free.tolist() == [True, False, False, True]  # no room in front of the second and third
 
 
 def test_depth_sdf_terms_vanish_for_the_exact_distance_and_measure_a_shift():
@@ -86,6 +88,16 @@ def test_depth_sdf_terms_vanish_for_the_exact_distance_and_measure_a_shift():
     assert depth_sdf_loss(exact, *head_on, 0.05, 16, 16)["sdf_surface"].item() < 1e-6
     nearer = depth_sdf_loss(lambda x: 1.48 - x[:, 2], *head_on, 0.05, 16, 16)
     assert nearer["sdf_surface"].item() == pytest.approx(0.02, rel=1e-4)
+    # a wide target does not carve free space out of a surface within its three sigmas: the plane
+    # 10 cm before a target of sigma 5 cm costs nothing in front of it, with sigma 1 cm it does
+    before = lambda x: 1.4 - x[:, 2]  # noqa: E731
+    wide = depth_sdf_loss(before, *head_on[:4], torch.full((8,), 0.05), torch.ones(8), 0.05, 0, 256)
+    sharp = depth_sdf_loss(before, *head_on[:4], torch.full((8,), 0.01), torch.ones(8), 0.05, 0, 256)
+    # the sharp target's free points in (1.40, 1.45) are inside: 3.7% of them, 2.5 cm deep on average
+    assert wide["sdf_free"].item() == 0 and sharp["sdf_free"].item() == pytest.approx(0.05 / 1.35 * 0.025, rel=0.3)
+    # points outside the field's box count zero
+    outside = depth_sdf_loss(lambda x: 1.48 - x[:, 2], *head_on, 0.05, 16, 16, inside=lambda x: x[:, 2] > 10)
+    assert outside["sdf_surface"].item() == 0 and outside["sdf_free"].item() == 0
     # negative in free space, or beyond the projective bound, is penalised by how far
     assert depth_sdf_loss(lambda x: 1.5 - x[:, 2] - 1.0, *head_on, 0.05, 0, 16)["sdf_free"].item() > 0.1
     assert depth_sdf_loss(lambda x: 2 * (1.5 - x[:, 2]), *head_on, 0.05, 0, 16)["sdf_free"].item() > 0.1
@@ -104,15 +116,15 @@ def test_depth_sdf_band_term_trusts_a_target_by_its_sigma():
 
 def test_surface_distance_finds_the_first_zero_crossing_between_samples():
     # rays from the origin at a sphere of radius 0.3 centred 1.5 m ahead, and behind it a wall at
-    # z = 3: the first crossing is the sphere's near side (closed form), between coarse samples
-    # 10 cm apart; a ray that misses the sphere meets the wall; one that meets nothing gets NaN
+    # z = 3: the first crossing is the sphere's near side (closed form), between samples 16 cm
+    # apart, not the sphere's far side or the wall; a ray that misses the sphere meets the wall;
+    # one that meets nothing gets NaN
     centre, radius, beta = torch.tensor([0.0, 0.0, 1.5]), 0.3, 0.02
     scene = lambda x: torch.minimum((x - centre).norm(dim=-1) - radius, 3.0 - x[:, 2])  # noqa: E731
     d = torch.tensor([[0.0, 0.0, 1.0], [0.1, 0.05, 1.0], [0.5, 0.0, 1.0]])
     d = d / d.norm(dim=-1, keepdim=True)
     o = torch.zeros(3, 3)
-    t = torch.linspace(0.05, 2.45, 25)[None].repeat(3, 1)  # short of the wall on the first two rays
-    t[2] = torch.linspace(0.05, 4.0, 25)
+    t = torch.linspace(0.05, 4.0, 25)[None].repeat(3, 1)  # the first two rays cross the sphere, then the wall
     density = sdf_density(scene((o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3)).view(t.shape), beta)
     found = surface_distance(scene, o, d, t, density, beta)
     b = (d[:2] * centre).sum(-1)  # the sphere's near side: t = b - sqrt(b^2 - |c|^2 + r^2)
@@ -186,9 +198,10 @@ def test_an_sdf_reconstruction_trains_with_the_eikonal_term_and_exports_its_zero
     # its depth is its surface: the signed distance at the rendered depth of a held-out view is ~0
     i = recon.holdout_indices[0]
     view = recon.render(recon.poses[i])
+    row = view["depth"].shape[0] // 2
     rays = recon._rays(recon.poses[i], recon.intrinsic, torch.arange(0, view["depth"].shape[1], 7.0),
-                       torch.full((len(range(0, view["depth"].shape[1], 7)),), view["depth"].shape[0] / 2))
-    z = torch.as_tensor(view["depth"][view["depth"].shape[0] // 2, ::7])
+                       torch.full((len(range(0, view["depth"].shape[1], 7)),), float(row)))
+    z = torch.as_tensor(view["depth"][row, ::7])
     with torch.no_grad():
         at_depth = recon.field.signed_distance(rays.origins + (z * rays.norms)[:, None] * rays.directions)
     assert at_depth.abs().median().item() < 1e-3

@@ -13,7 +13,8 @@ as GO-Surf does (Wang et al., 3DV 2022): a point at ray distance t of a ray whos
 mu lies at most mu - t from a surface (the projective distance bounds the true one), and close to
 the surface that bound is the distance. Within `truncation` of mu the sdf is fitted to mu - t
 (L1, m), scaled by each ray's target weight and its confidence (truncation / max(truncation,
-sigma)); in front of that band it must lie in [0, mu - t] (a hinge on each side).
+sigma)); in front of mu - max(truncation, 3 sigma) it must lie in [0, mu - t] (a hinge on each
+side).
 
 The depth such a field reports is its surface: the first zero crossing of the signed distance
 along the ray (:func:`surface_distance`), not the median of the rendered weights, which a ray
@@ -92,40 +93,55 @@ def eikonal_points(aabb: torch.Tensor, origins: torch.Tensor, directions: torch.
     return torch.cat([box, origins[pick] + t[:, None] * directions[pick]])
 
 
-def depth_sdf_samples(near: torch.Tensor, mu: torch.Tensor, truncation: float, n_band: int, n_free: int,
-                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Ray distances (m) of the depth-supervised sdf points of R rays with near ends near (R,)
-    and depth targets mu (R,): (R, n_band) uniform in [mu - truncation, mu + truncation] and
-    (R, n_free) uniform in [near, mu - truncation] (empty where the band starts before near)."""
+FREE_SPACE_SIGMAS = 3.0
+"""The free-space bound holds in front of mu - max(truncation, 3 sigma): a surface may lie anywhere
+within three of its target's sigmas, so a wide target (far, or seen by disagreeing views) does not
+carve free space out of the surface it may be."""
+
+
+def depth_sdf_samples(near: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, truncation: float, n_band: int,
+                      n_free: int, generator: torch.Generator | None = None):
+    """Ray distances (m) of the depth-supervised sdf points of R rays with near ends near (R,) and
+    depth targets mu, sigma (R,): band (R, n_band) uniform in [mu - truncation, mu + truncation];
+    free (R, n_free) uniform in [near, mu - max(truncation, FREE_SPACE_SIGMAS sigma)], and
+    has_free (R,) whether that interval is not empty (rows without it hold its end point)."""
     device = mu.device
     band = mu[:, None] + truncation * (2 * torch.rand(len(mu), n_band, device=device, generator=generator) - 1)
-    start = torch.minimum(near, mu - truncation)
-    free = start[:, None] + (mu - truncation - start)[:, None] * torch.rand(len(mu), n_free, device=device,
-                                                                         generator=generator)
-    return band, free
+    end = mu - torch.clamp(FREE_SPACE_SIGMAS * sigma, min=truncation)
+    start = torch.minimum(near, end)
+    free = start[:, None] + (end - start)[:, None] * torch.rand(len(mu), n_free, device=device, generator=generator)
+    return band, free, end > near
 
 
 def depth_sdf_loss(sdf, origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor, mu: torch.Tensor,
                    sigma: torch.Tensor, weight: torch.Tensor, truncation: float, n_band: int, n_free: int,
-                   generator: torch.Generator | None = None) -> dict:
+                   inside=None, generator: torch.Generator | None = None) -> dict:
     """The depth targets' direct sdf terms (see the module docstring) of R rays (origins, unit
     directions (R, 3), near ends (R,) m) with targets mu, sigma (R,) ray-distance m (all finite)
     and target weights (R,): {"sdf_surface": mean |sdf - (mu - t)| in the band (m),
     "sdf_free": mean of relu(-sdf) + relu(sdf - (mu - t)) in front of it (m)}, means over the
-    points of every ray (zero without rays). sdf: (M, 3) -> (M,) signed distance in metres."""
+    R n_band and R n_free points (zero without rays); points outside the field's box (inside:
+    (M, 3) -> (M,) 1 inside, 0 outside; None: everywhere inside) and the free points of a ray
+    without room for them count zero. sdf: (M, 3) -> (M,) signed distance in metres."""
     zero = origins.new_zeros(())
-    if len(mu) == 0:
-        return {"sdf_surface": zero, "sdf_free": zero}
-    band, free = depth_sdf_samples(near, mu, truncation, n_band, n_free, generator)
+    terms = {"sdf_surface": zero, "sdf_free": zero}
+    if len(mu) == 0 or n_band + n_free == 0:
+        return terms
+    band, free, has_free = depth_sdf_samples(near, mu, sigma, truncation, n_band, n_free, generator)
     t = torch.cat([band, free], 1)
-    values = sdf((origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)).reshape(t.shape)
+    x = (origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3)
+    values = sdf(x).reshape(t.shape)
+    counted = weight[:, None].expand_as(t) if inside is None else weight[:, None] * inside(x).reshape(t.shape)
     bound = mu[:, None] - t
-    confidence = weight * truncation / sigma.clamp(min=truncation)
-    surface = ((values[:, :n_band] - bound[:, :n_band]).abs() * confidence[:, None]).mean() if n_band else zero
-    free_values, free_bound = values[:, n_band:], bound[:, n_band:]
-    free_term = ((torch.relu(-free_values) + torch.relu(free_values - free_bound)) * weight[:, None]).mean() \
-        if n_free else zero
-    return {"sdf_surface": surface, "sdf_free": free_term}
+    if n_band:
+        confidence = truncation / sigma.clamp(min=truncation)
+        residual = (values[:, :n_band] - bound[:, :n_band]).abs() * confidence[:, None]
+        terms["sdf_surface"] = (residual * counted[:, :n_band]).mean()
+    if n_free:
+        free_values = values[:, n_band:]
+        violation = torch.relu(-free_values) + torch.relu(free_values - bound[:, n_band:])
+        terms["sdf_free"] = (violation * counted[:, n_band:] * has_free[:, None]).mean()
+    return terms
 
 
 def surface_distance(signed_distance, origins: torch.Tensor, directions: torch.Tensor, t: torch.Tensor,
