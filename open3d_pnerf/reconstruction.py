@@ -170,14 +170,19 @@ class Reconstruction:
     def render_pixels(self, pose: np.ndarray, intrinsic, u: torch.Tensor, v: torch.Tensor, chunk: int = 2048) -> dict:
         """Numpy color (R, 3) in [0, 1], z-depth depth (of the median ray distance: see
         :attr:`~open3d_pnerf.rendering.RayRender.median`; a signed-distance field's surface where the
-        ray meets it) and raw (uncalibrated) depth_std (R,) m (the spread of the ray's weights),
-        opacity (R,) of pixels (u, v) (R,) of a camera-to-world pose (4, 4) with `intrinsic`."""
+        ray meets it) and raw (uncalibrated) depth_std (R,) m (the spread of the ray's weights; a
+        signed-distance field's about the depth it reports, so that weights that put the ray
+        elsewhere than its surface widen it), opacity (R,) of pixels (u, v) (R,) of a
+        camera-to-world pose (4, 4) with `intrinsic`."""
         rays = self._rays(pose, intrinsic, u, v)
         surface = ("surface",) if getattr(self.field, "sdf", None) is not None else ()
-        out = self.model.render(rays, chunk, keys=("color", "median", "depth_var", "opacity") + surface)
-        depth = out["median"] if not surface else torch.where(out["surface"].isfinite(), out["surface"], out["median"])
+        out = self.model.render(rays, chunk, keys=("color", "median", "depth", "depth_var", "opacity") + surface)
+        depth, spread = out["median"], out["depth_var"]
+        if surface:  # the weights' second moment about the surface
+            depth = torch.where(out["surface"].isfinite(), out["surface"], out["median"])
+            spread = spread + (out["depth"] - depth) ** 2
         return {"color": out["color"].clamp(0, 1).cpu().numpy(), "depth": (depth / rays.norms).cpu().numpy(),
-                "depth_std": (out["depth_var"].sqrt() / rays.norms).cpu().numpy(),
+                "depth_std": (spread.sqrt() / rays.norms).cpu().numpy(),
                 "opacity": out["opacity"].cpu().numpy()}
 
     def unseen_distance(self, pose: np.ndarray, K: np.ndarray, u: np.ndarray, v: np.ndarray,

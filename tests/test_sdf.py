@@ -205,3 +205,12 @@ def test_an_sdf_reconstruction_trains_with_the_eikonal_term_and_exports_its_zero
     with torch.no_grad():
         at_depth = recon.field.signed_distance(rays.origins + (z * rays.norms)[:, None] * rays.directions)
     assert at_depth.abs().median().item() < 1e-3
+    # and its raw spread is the weights' about that surface: at least their spread about their mean,
+    # more where they put the ray elsewhere
+    u = torch.arange(0, view["depth"].shape[1], 7.0)
+    pixels = recon.render_pixels(recon.poses[i], recon.intrinsic, u, torch.full_like(u, float(row)))
+    weights = recon.model.render(rays, keys=("depth", "depth_var"))
+    about_mean = (weights["depth_var"].sqrt() / rays.norms).numpy()
+    shift = weights["depth"].numpy() / rays.norms.numpy() - pixels["depth"]  # z-depth m
+    assert np.abs(shift).max() > 0.01 and (pixels["depth_std"] >= about_mean - 1e-6).all()
+    assert np.allclose(pixels["depth_std"] ** 2, about_mean ** 2 + shift ** 2, rtol=1e-3, atol=1e-8)
