@@ -47,12 +47,13 @@ class SDFConfig(Settings):
     box, half along the batch's rays."""
     truncation: float = setting(0.05, number(0, low_open=True, unit="metres"))
     """Half-width (m) of the band around each depth target where the sdf is fitted to the
-    projective distance (objective.weights.sdf_surface); in front of it the free-space bound holds
-    (objective.weights.sdf_free)."""
+    projective distance (objective.weights.sdf_surface); in front of it, and of three target
+    sigmas, the free-space bound holds (objective.weights.sdf_free)."""
     band_points: int = setting(8, count(0))
     """Points per ray with a depth target drawn uniformly in the band mu +- truncation."""
     free_points: int = setting(8, count(0))
-    """Points per ray with a depth target drawn uniformly between the ray's near end and the band."""
+    """Points per ray with a depth target drawn uniformly between the ray's near end and three of
+    the target's sigmas (at least the band's half-width) before it."""
 
 
 def laplace_cdf(s: torch.Tensor, beta: torch.Tensor | float) -> torch.Tensor:
