@@ -175,8 +175,8 @@ class Reconstruction:
         elsewhere than its surface widen it), opacity (R,) of pixels (u, v) (R,) of a
         camera-to-world pose (4, 4) with `intrinsic`."""
         rays = self._rays(pose, intrinsic, u, v)
-        surface = ("surface",) if getattr(self.field, "sdf", None) is not None else ()
-        out = self.model.render(rays, chunk, keys=("color", "median", "depth", "depth_var", "opacity") + surface)
+        surface = ("surface", "depth") if getattr(self.field, "sdf", None) is not None else ()
+        out = self.model.render(rays, chunk, keys=("color", "median", "depth_var", "opacity") + surface)
         depth, spread = out["median"], out["depth_var"]
         if surface:  # the weights' second moment about the surface
             depth = torch.where(out["surface"].isfinite(), out["surface"], out["median"])
