@@ -8,8 +8,10 @@ convergence but not whether the answer is right, so every result is checked: eno
 depth, a finite transformation, enough geometric overlap after alignment, and a plausible
 correction of the initial guess; and it carries its geometric residual and the covariance
 estimated from it (:mod:`open3d_pnerf.tracking.uncertainty`), which the tracker compares with
-the sequence's other registrations. :func:`global_registration` (FPFH features + RANSAC) gives
-an initial guess independent of any motion model, for frames that moved too far for odometry.
+the sequence's other registrations. Two initial guesses independent of any motion model, for
+frames that moved too far for odometry: :func:`feature_registration` (ORB keypoints of the colour
+images matched and solved with PnP-RANSAC on the source's depth) and :func:`global_registration`
+(FPFH features of the point clouds + RANSAC).
 """
 
 from __future__ import annotations
@@ -63,6 +65,11 @@ class OdometryOptions:
     sequence's accepted registrations so far is suspicious: the tracker tries other initial
     guesses and keeps the best fit (a wrong pose of a textured scene leaves residuals many times
     those of the right ones)."""
+    overlap_ratio: float = 0.8
+    """A registration whose overlap is below this fraction of the median overlap of the sequence's
+    accepted registrations so far is doubtful: the tracker tries the other initial guesses too (a
+    wrong minimum of a textured scene overlaps less than the right one, with a residual that need
+    not stand out)."""
 
     search_all_above_m: float = 0.05
     """When the predicted motion from the last frame exceeds this (m) or search_all_above_deg,
@@ -97,7 +104,7 @@ class OdometryOptions:
             raise InputError(f"method must be one of {sorted(_METHODS)}, got {self.method!r}")
         if not self.iterations or any(int(i) < 1 for i in self.iterations):
             raise InputError(f"iterations must be positive integers per level, got {self.iterations!r}")
-        for name in ("inlier_distance_m", "max_translation_m", "max_rotation_deg", "residual_ratio",
+        for name in ("inlier_distance_m", "max_translation_m", "max_rotation_deg", "residual_ratio", "overlap_ratio",
                      "search_all_above_m", "search_all_above_deg"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)!r}")
@@ -207,6 +214,7 @@ class FrameRegistration:
     def _load(self, index: int) -> "_Image":
         frame = self.sequence[index]
         color = np.ascontiguousarray(self.sequence.color_on_depth_grid(frame.color))
+        gray = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY)
         depth = frame.depth
         valid = float(np.mean((depth > 0) & (depth < self.max_depth)))
         geometry = DepthFrame.of(depth, self.K, self.max_depth)
@@ -215,7 +223,7 @@ class FrameRegistration:
         rgbd = o3d.t.geometry.RGBDImage(
             o3d.t.geometry.Image(o3d.core.Tensor(color)), o3d.t.geometry.Image(o3d.core.Tensor(depth))
         ).to(self.device)
-        return _Image(rgbd, valid, geometry)
+        return _Image(rgbd, valid, geometry, gray)
 
     def forget(self, index: int) -> None:
         """Drop frame `index`'s cached image (a frame that was taken back and may come again)."""
@@ -304,17 +312,32 @@ class FrameRegistration:
         src, tgt = self.image(source), self.image(target)
         return global_registration(_cloud(src), _cloud(tgt))
 
+    def feature_guess(self, source: int, target: int) -> np.ndarray | None:
+        """An initial guess (4, 4, source -> target) from :func:`feature_registration` of the two
+        frames' colour keypoints, or None when too few of them agree on one motion."""
+        src, tgt = self.image(source), self.image(target)
+        return feature_registration(src.keypoints, src.geometry.depth, tgt.keypoints, self.K)
+
 
 @dataclasses.dataclass
 class _Image:
     rgbd: o3d.t.geometry.RGBDImage
     valid: float
     geometry: DepthFrame
+    gray: np.ndarray
+    """(H, W) uint8: the colour image on the depth grid at full resolution, for its keypoints."""
+
+    @functools.cached_property
+    def keypoints(self) -> tuple[np.ndarray, np.ndarray]:
+        """ORB keypoints of the colour image (computed when first asked): pixel positions (N, 2)
+        and binary descriptors (N, 32) uint8."""
+        return orb_keypoints(self.gray)
 
     @property
     def nbytes(self) -> int:
         """Memory (bytes) of the arrays it holds: the geometry's (those computed so far) and the RGBD image."""
-        arrays = [a for a in vars(self.geometry).values() if isinstance(a, np.ndarray)] + list(self.geometry.samples)
+        arrays = ([a for a in vars(self.geometry).values() if isinstance(a, np.ndarray)] + list(self.geometry.samples)
+                  + [self.gray])
         tensors = (self.rgbd.color.as_tensor(), self.rgbd.depth.as_tensor())
         return sum(a.nbytes for a in arrays) + sum(t.num_elements() * t.dtype.byte_size() for t in tensors)
 
@@ -333,6 +356,56 @@ def _reader() -> ThreadPoolExecutor:
 
 def _cloud(image: _Image) -> np.ndarray:
     return image.geometry.points[image.geometry.depth > 0]
+
+
+ORB_KEYPOINTS = 1000
+"""Keypoints ORB keeps per image for :func:`feature_registration`."""
+MIN_FEATURE_INLIERS = 20
+"""Fewer keypoint matches than this agreeing on one motion (within PNP_REPROJECTION_PX): no guess."""
+PNP_REPROJECTION_PX = 3.0
+"""A match agrees with a motion when the source point reprojects within this many pixels of its
+match in the target image."""
+
+
+def orb_keypoints(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ORB keypoints (OpenCV) of a (H, W) uint8 image: positions (N, 2) pixels and descriptors (N, 32) uint8."""
+    keypoints, descriptors = cv2.ORB_create(nfeatures=ORB_KEYPOINTS).detectAndCompute(gray, None)
+    if descriptors is None:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8)
+    return np.array([k.pt for k in keypoints], np.float32).reshape(-1, 2), descriptors
+
+
+def feature_registration(source: tuple[np.ndarray, np.ndarray], source_depth: np.ndarray,
+                         target: tuple[np.ndarray, np.ndarray], K: np.ndarray) -> np.ndarray | None:
+    """(4, 4) transformation mapping source-camera points into the target camera, from keypoints
+    (positions (N, 2) px, ORB descriptors) of the two images: matches that pass Lowe's ratio test
+    (0.8), lifted to 3D by the source's depth (H, W, m, 0 = none) and intrinsic K (3, 3), then
+    PnP-RANSAC (OpenCV, seeded) on their target positions and a Levenberg-Marquardt polish on the
+    inliers. None when fewer than MIN_FEATURE_INLIERS matches agree."""
+    (uv_s, des_s), (uv_t, des_t) = source, target
+    if len(uv_s) < MIN_FEATURE_INLIERS or len(uv_t) < MIN_FEATURE_INLIERS:
+        return None
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(des_s, des_t, k=2)
+    good = np.array([(m[0].queryIdx, m[0].trainIdx) for m in pairs
+                     if len(m) == 2 and m[0].distance < 0.8 * m[1].distance], int).reshape(-1, 2)
+    pixels = np.round(uv_s[good[:, 0]]).astype(int)
+    z = source_depth[pixels[:, 1].clip(0, source_depth.shape[0] - 1), pixels[:, 0].clip(0, source_depth.shape[1] - 1)]
+    good, z = good[z > 0], z[z > 0]
+    if len(good) < MIN_FEATURE_INLIERS:
+        return None
+    points = (np.c_[uv_s[good[:, 0]], np.ones(len(good))] @ np.linalg.inv(K).T) * z[:, None]
+    seen = np.ascontiguousarray(uv_t[good[:, 1]], np.float64)
+    cv2.setRNGSeed(0)
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(points, seen, K, None, iterationsCount=1000,
+                                                 reprojectionError=PNP_REPROJECTION_PX, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inliers is None or len(inliers) < MIN_FEATURE_INLIERS:
+        return None
+    inliers = inliers[:, 0]
+    rvec, tvec = cv2.solvePnPRefineLM(points[inliers], seen[inliers], K, None, rvec, tvec)
+    transformation = np.eye(4)
+    transformation[:3, :3], transformation[:3, 3] = cv2.Rodrigues(rvec)[0], tvec[:, 0]
+    return transformation
 
 
 def global_registration(source: np.ndarray, target: np.ndarray) -> np.ndarray | None:

@@ -19,7 +19,7 @@ class Edge:
     correspondence after alignment. correspondences: how many of the refinement's sampled
     source pixels have one.
     residual_rms: point-to-plane residual after alignment (m); init: the initial guess it
-    started from ("constant velocity", "zero motion", "global", "from frame j", "loop").
+    started from ("constant velocity", "zero motion", "features", "global", "from frame j", "loop").
     """
 
     source: int
