@@ -295,6 +295,10 @@ def test_keypoints_give_no_start_without_texture(sample):
     textured = orb_keypoints(np.ascontiguousarray(sample[0].color[..., 1]))
     assert feature_registration(keypoints, sample[0].depth, textured, sample.K) is None
     assert feature_registration(textured, np.zeros_like(sample[0].depth), textured, sample.K) is None  # no depth
+    # the same descriptors at unrelated positions: matched, but no motion explains them
+    scattered = (np.random.default_rng(0).permutation(textured[0]), textured[1])
+    assert feature_registration(textured, sample[0].depth, scattered, sample.K) is None
+    assert feature_registration(textured, sample[0].depth, textured, sample.K) is not None
 
 
 def passing(transformation: np.ndarray, overlap: float, residual_m: float, init: str) -> PairResult:
@@ -313,11 +317,25 @@ def test_consensus_prefers_votes_then_the_residual_per_overlap():
     kept, recovered = run.consensus([(passing(right, 0.538, 0.0036, "constant velocity"), 0),
                                      (passing(wrong, 0.552, 0.0045, "global"), 0)])
     assert kept[0].init == "constant velocity" and not recovered
+    # within poses that agree, the lowest residual: the ratio there moved the synthetic 100-frame seed 2 12.7 mm off
+    near_right = twist_matrix(np.r_[0, 0, 0, 0.075, 0, 0])
+    kept, _ = run.consensus([(passing(right, 0.50, 0.0050, "constant velocity"), 0),
+                             (passing(near_right, 0.90, 0.0055, "global"), 0)])
+    assert kept[0].init == "constant velocity"
     # two starts that agree outvote a lone minimum whatever its fit
     kept, recovered = run.consensus([(passing(wrong, 0.55, 0.0070, "constant velocity"), 0),
                                      (passing(wrong, 0.56, 0.0072, "zero motion"), 0),
                                      (passing(right, 0.81, 0.0050, "features"), 0)])
     assert kept[0].init == "constant velocity" and not recovered
+
+
+def test_a_registration_that_overlaps_much_less_than_the_accepted_ones_is_doubtful():
+    run = _Run(registrar=None, options=OdometryOptions())  # overlap_ratio 0.8
+    assert not run.doubtful(passing(np.eye(4), 0.3, 0.005, "constant velocity"))  # nothing to compare with yet
+    run.residuals, run.overlaps = [0.005] * 3, [0.80, 0.75, 0.85]
+    assert not run.doubtful(passing(np.eye(4), 0.65, 0.005, "constant velocity"))  # 0.81x the median
+    assert run.doubtful(passing(np.eye(4), 0.55, 0.005, "constant velocity"))  # 0.69x: frame 87's case
+    assert run.doubtful(passing(np.eye(4), 0.80, 0.020, "constant velocity"))  # a residual 4x the median
 
 
 @pytest.mark.slow

@@ -73,7 +73,7 @@ class OdometryOptions:
 
     search_all_above_m: float = 0.05
     """When the predicted motion from the last frame exceeds this (m) or search_all_above_deg,
-    the tracker tries every initial guess (including the global registration) and keeps the
+    the tracker tries every initial guess (including the keypoint and global registrations) and keeps the
     best fit, even if the first passes: at such motions odometry can settle in a wrong minimum
     with an unremarkable residual."""
     search_all_above_deg: float = 5.0
@@ -335,7 +335,8 @@ class _Image:
 
     @property
     def nbytes(self) -> int:
-        """Memory (bytes) of the arrays it holds: the geometry's (those computed so far) and the RGBD image."""
+        """Memory (bytes) of the arrays it holds: the geometry's (those computed so far), the grey
+        image and the RGBD image (not the keypoints, about 40 KB once computed)."""
         arrays = ([a for a in vars(self.geometry).values() if isinstance(a, np.ndarray)] + list(self.geometry.samples)
                   + [self.gray])
         tensors = (self.rgbd.color.as_tensor(), self.rgbd.depth.as_tensor())
@@ -344,7 +345,7 @@ class _Image:
 
 FRAME_CACHE_MB = 512
 """At most this much memory (MB) holds cached frame images when the cache is enlarged (reserve):
-28 frames at 640x480, 108 at 320x240 (62-64 bytes per pixel)."""
+27 frames at 640x480, 107 at 320x240 (63-65 bytes per pixel)."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -380,7 +381,7 @@ def feature_registration(source: tuple[np.ndarray, np.ndarray], source_depth: np
     """(4, 4) transformation mapping source-camera points into the target camera, from keypoints
     (positions (N, 2) px, ORB descriptors) of the two images: matches that pass Lowe's ratio test
     (0.8), lifted to 3D by the source's depth (H, W, m, 0 = none) and intrinsic K (3, 3), then
-    PnP-RANSAC (OpenCV, seeded) on their target positions and a Levenberg-Marquardt polish on the
+    PnP-RANSAC (OpenCV's, deterministic: its random generator has a fixed seed) on their target positions and a Levenberg-Marquardt polish on the
     inliers. None when fewer than MIN_FEATURE_INLIERS matches agree."""
     (uv_s, des_s), (uv_t, des_t) = source, target
     if len(uv_s) < MIN_FEATURE_INLIERS or len(uv_t) < MIN_FEATURE_INLIERS:
@@ -395,7 +396,6 @@ def feature_registration(source: tuple[np.ndarray, np.ndarray], source_depth: np
         return None
     points = (np.c_[uv_s[good[:, 0]], np.ones(len(good))] @ np.linalg.inv(K).T) * z[:, None]
     seen = np.ascontiguousarray(uv_t[good[:, 1]], np.float64)
-    cv2.setRNGSeed(0)
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(points, seen, K, None, iterationsCount=1000,
                                                  reprojectionError=PNP_REPROJECTION_PX, confidence=0.999,
                                                  flags=cv2.SOLVEPNP_EPNP)

@@ -78,8 +78,9 @@ def track(
        PnP-RANSAC on the depth (:func:`~open3d_pnerf.tracking.odometry.feature_registration`),
        the global registration of the two frames' point clouds (FPFH + RANSAC,
        :func:`~open3d_pnerf.tracking.odometry.global_registration`), and the last frame
-       registered before i-1; of the pose most passing candidates agree on, the one with the
-       lowest residual per overlap wins. When the predicted motion is fast (``odometry.search_all_above_m`` /
+       registered before i-1; the pose most passing candidates agree on is kept (between poses
+       with as many votes, the one with the lowest residual per overlap), from the candidate
+       with the lowest residual among those that reach it. When the predicted motion is fast (``odometry.search_all_above_m`` /
        ``search_all_above_deg``) every guess is tried, as a wrong minimum need not stand out.
        A frame that still fits badly, or whose starts reached different poses (its covariance
        then grows by their disagreement), is kept and flagged; one that no candidate places
@@ -161,8 +162,9 @@ def track_onto(
     (K, 4, 4) and covariances (K, 6, 6) are known and stay as they are.
 
     Frame K is placed on the map by the first of these that passes :func:`track`'s checks: the
-    chain's own guesses from frame K-1 (constant velocity, zero motion, global registration:
-    a capture that continues), then zero motion and the global registration against `anchors`
+    chain's own guesses from frame K-1 (constant velocity, zero motion, keypoints, global
+    registration: a capture that continues), then zero motion, the keypoints and the global
+    registration against `anchors`
     map frames evenly spaced over the others, best residual first; when none passes, the frames
     cannot join the map and TrackingError says so (they are never chained from a guess). The
     frames after K are tracked as :func:`track` tracks them; with ``loop_closure``, keyframes of
@@ -299,8 +301,10 @@ class _Run:
     def doubtful(self, result: PairResult) -> bool:
         """Whether a registration is suspicious or overlaps little against the sequence's accepted
         ones so far (then the other starts are tried too)."""
-        if self.suspicious(result) or len(self.overlaps) < 3:
-            return self.suspicious(result)
+        if self.suspicious(result):
+            return True
+        if len(self.overlaps) < 3:
+            return False
         return result.overlap < self.options.overlap_ratio * float(np.median(self.overlaps[-30:]))
 
     def relative(self, source: int, target: int) -> np.ndarray:
@@ -337,7 +341,7 @@ class _Run:
 
     def track_frame(self, i: int) -> None:
         """Add frame i: the best verified registration among the candidates (the first that
-        passes and is not suspicious, or all of them when the camera moves fast), else a guess."""
+        passes and is not doubtful, or all of them when the camera moves fast), else a guess."""
         self.registrar.prefetch(i + 1)
         passed = self.try_candidates(i)
         if not self.add_registered(i, passed):  # nothing placed it: continue the motion, with a covariance to match
@@ -348,7 +352,7 @@ class _Run:
 
     def place_on_map(self, i: int, anchors: list[int], name: str) -> int:
         """Add frame i, the first after the known ones, from the chain's candidates or else from
-        zero motion or a global registration to each map frame in `anchors`; returns the frame
+        zero motion, the keypoints or a global registration to each map frame in `anchors`; returns the frame
         it was registered from. TrackingError when none passes (nothing is guessed)."""
         passed = self.try_candidates(i)
         for j in anchors if not passed else ():

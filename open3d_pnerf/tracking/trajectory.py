@@ -50,7 +50,7 @@ class Trajectory:
     residual stayed high against the sequence's others, or whose initial guesses reached different
     poses (kept, with the covariance their residuals and that disagreement give).
     recovered_frames: frames whose registration from the constant-velocity guess failed, looked
-    suspicious or was outvoted, and that another initial guess placed.
+    suspicious, overlapped little or was outvoted, and that another initial guess placed.
     timestamps: (N,) float64 seconds, from the sequence.
     color_offsets: (N, 4, 4) each frame's colour camera in its depth camera's frame (the colour
     image's pose is ``poses[i] @ color_offsets[i]``, see :mod:`~open3d_pnerf.tracking.color`), or
