@@ -381,8 +381,9 @@ def feature_registration(source: tuple[np.ndarray, np.ndarray], source_depth: np
     """(4, 4) transformation mapping source-camera points into the target camera, from keypoints
     (positions (N, 2) px, ORB descriptors) of the two images: matches that pass Lowe's ratio test
     (0.8), lifted to 3D by the source's depth (H, W, m, 0 = none) and intrinsic K (3, 3), then
-    PnP-RANSAC (OpenCV's, deterministic: its random generator has a fixed seed) on their target positions and a Levenberg-Marquardt polish on the
-    inliers. None when fewer than MIN_FEATURE_INLIERS matches agree."""
+    PnP-RANSAC (OpenCV's, deterministic: its random generator has a fixed seed) on their target
+    positions and a Levenberg-Marquardt polish on the inliers. None when fewer than
+    MIN_FEATURE_INLIERS matches agree."""
     (uv_s, des_s), (uv_t, des_t) = source, target
     if len(uv_s) < MIN_FEATURE_INLIERS or len(uv_t) < MIN_FEATURE_INLIERS:
         return None

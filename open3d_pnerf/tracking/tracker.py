@@ -80,8 +80,9 @@ def track(
        :func:`~open3d_pnerf.tracking.odometry.global_registration`), and the last frame
        registered before i-1; the pose most passing candidates agree on is kept (between poses
        with as many votes, the one with the lowest residual per overlap), from the candidate
-       with the lowest residual among those that reach it. When the predicted motion is fast (``odometry.search_all_above_m`` /
-       ``search_all_above_deg``) every guess is tried, as a wrong minimum need not stand out.
+       with the lowest residual among those that reach it. When the predicted motion is fast
+       (``odometry.search_all_above_m`` / ``search_all_above_deg``) every guess is tried, as a
+       wrong minimum need not stand out.
        A frame that still fits badly, or whose starts reached different poses (its covariance
        then grows by their disagreement), is kept and flagged; one that no candidate places
        keeps the constant-velocity guess with a covariance spanning the plausible-motion
@@ -352,11 +353,13 @@ class _Run:
 
     def place_on_map(self, i: int, anchors: list[int], name: str) -> int:
         """Add frame i, the first after the known ones, from the chain's candidates or else from
-        zero motion, the keypoints or a global registration to each map frame in `anchors`; returns the frame
-        it was registered from. TrackingError when none passes (nothing is guessed)."""
+        zero motion, the keypoints or a global registration to each map frame in `anchors`;
+        returns the frame it was registered from. TrackingError when none passes (nothing is
+        guessed)."""
         passed = self.try_candidates(i)
         for j in anchors if not passed else ():
-            for start, init in (("zero motion", lambda: np.eye(4)), ("features", lambda: self.registrar.feature_guess(j, i)),
+            for start, init in (("zero motion", lambda: np.eye(4)),
+                                ("features", lambda: self.registrar.feature_guess(j, i)),
                                 ("global", lambda: self.registrar.global_guess(j, i))):
                 guess = init()
                 result = None if guess is None else self.register(j, i, "odometry", self.options, guess,
