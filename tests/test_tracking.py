@@ -11,7 +11,7 @@ import pytest
 from scipy.linalg import expm, logm
 
 from open3d_pnerf.camera import (
-    adjoint, matrix_quaternion, motion, matrix_twist, quaternion_matrix, rotation_matrix, rotation_vector, twist_matrix,
+    adjoint, matrix_quaternion, matrix_twist, motion, quaternion_matrix, rotation_matrix, rotation_vector, twist_matrix,
 )
 from open3d_pnerf.data import RGBDSequence, load_sample, load_sequence
 from open3d_pnerf.errors import InputError, PoseError, TrackingError

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from ..camera import motion
+from ..camera import motion, unproject
 from ..data.sequence import RGBDSequence
 from ..errors import InputError
 from .uncertainty import DepthFrame, refine
@@ -395,7 +395,7 @@ def feature_registration(source: tuple[np.ndarray, np.ndarray], source_depth: np
     good, z = good[z > 0], z[z > 0]
     if len(good) < MIN_FEATURE_INLIERS:
         return None
-    points = (np.c_[uv_s[good[:, 0]], np.ones(len(good))] @ np.linalg.inv(K).T) * z[:, None]
+    points = unproject(np.asarray(K, np.float64), *uv_s[good[:, 0]].astype(np.float64).T, z.astype(np.float64))
     seen = np.ascontiguousarray(uv_t[good[:, 1]], np.float64)
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(points, seen, K, None, iterationsCount=1000,
                                                  reprojectionError=PNP_REPROJECTION_PX, confidence=0.999,
