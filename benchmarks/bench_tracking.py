@@ -7,8 +7,10 @@ Sections, in one run:
 1. real: TUM fr1/xyz (mocap GT) and 7-Scenes redkitchen frames 150-199 (KinectFusion GT), at
    full (640x480) and half resolution, loop closures on and off: ATE, ms/frame, failed / recovered
    / flagged frames, NEES per dof with its chi-square 95% band, per-axis z-score std, shares of
-   per-axis errors within 1 and 2 sigma; the same for the previous release (`--previous`, its fixed
-   ``point_noise_m = 2``) on the same frames, run in a subprocess from a git worktree;
+   per-axis errors within 1 and 2 sigma; the same for the previous release (`--previous`, its
+   fixed ``point_noise_m = 2``) on the same frames, run in a subprocess from a git worktree; and,
+   this tracker's only, the optimised graph's chi-square per dof of its loop and odometry edges
+   (whether they agree with each other as their covariances say);
    The same with each sequence cut in two halves (TUM fr1/xyz frames 0-15 / 16-31, 7-Scenes
    150-174 / 175-199): the first halves are the tuning split of the misregistration floor, the
    second halves report on frames no setting looked at;
@@ -42,6 +44,7 @@ import numpy as np
 import open3d as o3d
 from scipy.stats import chi2
 
+from open3d_pnerf.camera import matrix_twist
 from open3d_pnerf.data import load_sequence
 from open3d_pnerf.synthetic import room_scene, synthetic_sequence
 from open3d_pnerf.targets import depth_targets
@@ -117,10 +120,27 @@ def scores(poses, covariances, gt, wrong_m: float) -> dict:
             "silently_wrong": [int(i) for i in wrong if nees[i] > WRONG_NEES]}
 
 
+def edge_agreement(graph) -> dict:
+    """How well the optimised pose graph's edges agree with its poses, against their own
+    covariances: the mean of e^T Lambda e / 6 over the kept loop closures (uncertain edges) and over
+    the odometry edges, e = log(T_t^-1 T_s X^-1) (tracking.covariance's residual), Lambda the
+    edge's information; 1 for edges whose errors are independent and as large as their covariances
+    say, far below 1 when the loop closures and the chain share their errors (None: no such edge)."""
+    poses = [np.asarray(node.pose) for node in graph.nodes]
+    chi = {True: [], False: []}
+    for edge in graph.edges:
+        e = matrix_twist(np.linalg.inv(poses[edge.target_node_id]) @ poses[edge.source_node_id]
+                         @ np.linalg.inv(np.asarray(edge.transformation)))
+        chi[edge.uncertain].append(float(e @ np.asarray(edge.information) @ e) / 6)
+    return {f"{name}_chi2_per_dof": round(float(np.mean(chi[kind])), 4) if chi[kind] else None
+            for name, kind in (("loop", True), ("odometry", False))}
+
+
 def row(seq, traj, seconds, messages, wrong_m: float) -> dict:
     return {"ms_per_frame": round(1000 * seconds / len(seq), 1),
             "failed": traj.failed_frames, "recovered": traj.recovered_frames, "flagged": traj.flagged_frames,
             "loops_kept": sum(e.kind == "loop" and e.success for e in traj.edges),
+            **edge_agreement(traj.pose_graph),
             **scores(traj.poses, traj.covariances, seq.gt_poses, wrong_m), "warnings": messages}
 
 
@@ -236,12 +256,18 @@ def downstream_section(previous: PreviousRelease, cases) -> dict:
     return out
 
 
+def agreement(r: dict) -> str:
+    """A row's edge_agreement cell ("-" where the run has none)."""
+    return " / ".join("-" if r.get(k) is None else f"{r[k]:.3f}" for k in ("loop_chi2_per_dof", "odometry_chi2_per_dof"))
+
+
 def markdown(report: dict) -> str:
     lines = [f"# Tracking ({report['total_minutes']} min, `python benchmarks/bench_tracking.py`)", "",
              f"## Real sequences: this tracker / the previous release ({report['previous']}, e7fdb54's tracker; "
              "`point_noise_m = 2`), run one after the other", "",
              "| sequence, setting | ATE mm | ms/frame (ratio) | loops kept | NEES/dof (band) | z std | within 1σ / 2σ | "
-             "recovered / flagged / failed |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "recovered / flagged / failed | edges' χ²/dof, loops / odometry |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for key, r in report["real"].items():
         n, p = r["new"], r["previous"]
         lines.append(f"| {key} | {n['ate_mm']} / {p['ate_mm']} | {n['ms_per_frame']:.0f} / {p['ms_per_frame']:.0f} "
@@ -249,15 +275,15 @@ def markdown(report: dict) -> str:
                      f"{n['nees_per_dof']} / {p['nees_per_dof']} ({n['nees_band'][0]:.2f}-{n['nees_band'][1]:.2f}) | "
                      f"{n['z_std']} / {p['z_std']} | {n['within_1']:.2f}, {n['within_2']:.2f} / "
                      f"{p['within_1']:.2f}, {p['within_2']:.2f} | "
-                     f"{len(n['recovered'])} / {len(n['flagged'])} / {len(n['failed'])} |")
+                     f"{len(n['recovered'])} / {len(n['flagged'])} / {len(n['failed'])} | {agreement(n)} |")
     lines += ["", "## Halves: the misregistration floor was chosen on the tuning halves; the report halves are "
               "frames no setting looked at", "",
-              "| sequence, half, setting | ATE mm | ms/frame | loops kept | NEES/dof (band) | z std | within 1σ / 2σ |",
-              "| --- | --- | --- | --- | --- | --- | --- |"]
+              "| sequence, half, setting | ATE mm | ms/frame | loops kept | NEES/dof (band) | z std | within 1σ / 2σ | "
+              "edges' χ²/dof, loops / odometry |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for key, n in report["halves"].items():
         lines.append(f"| {key} | {n['ate_mm']} | {n['ms_per_frame']:.0f} | {n['loops_kept']} | {n['nees_per_dof']} "
                      f"({n['nees_band'][0]:.2f}-{n['nees_band'][1]:.2f}) | {n['z_std']} | "
-                     f"{n['within_1']:.2f} / {n['within_2']:.2f} |")
+                     f"{n['within_1']:.2f} / {n['within_2']:.2f} | {agreement(n)} |")
     lines += ["", "## Large motion", "",
               "| sequence | ATE mm | max frame error mm | frames off (>1 cm synthetic, >3 cm 7-Scenes) | "
               "silently wrong | recovered | flagged | failed | NEES/dof | z std |",
