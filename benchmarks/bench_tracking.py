@@ -124,8 +124,9 @@ def edge_agreement(graph) -> dict:
     """How well the optimised pose graph's edges agree with its poses, against their own
     covariances: the mean of e^T Lambda e / 6 over the kept loop closures (uncertain edges) and over
     the odometry edges, e = log(T_t^-1 T_s X^-1) (tracking.covariance's residual), Lambda the
-    edge's information; 1 for edges whose errors are independent and as large as their covariances
-    say, far below 1 when the loop closures and the chain share their errors (None: no such edge)."""
+    edge's information. Edges whose errors are independent and as large as their covariances say
+    give about the graph's share of redundant edges (loops / all edges) on average; far less when
+    the loop closures and the chain share their errors (None: no such edge)."""
     poses = [np.asarray(node.pose) for node in graph.nodes]
     chi = {True: [], False: []}
     for edge in graph.edges:
