@@ -259,7 +259,8 @@ def downstream_section(previous: PreviousRelease, cases) -> dict:
 
 def agreement(r: dict) -> str:
     """A row's edge_agreement cell ("-" where the run has none)."""
-    return " / ".join("-" if r.get(k) is None else f"{r[k]:.3f}" for k in ("loop_chi2_per_dof", "odometry_chi2_per_dof"))
+    keys = ("loop_chi2_per_dof", "odometry_chi2_per_dof")
+    return " / ".join("-" if r.get(k) is None else f"{r[k]:.3f}" for k in keys)
 
 
 def markdown(report: dict) -> str:
