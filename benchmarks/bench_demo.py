@@ -66,13 +66,13 @@ def heldout_frames(folder: Path) -> dict:
     from open3d_pnerf import Reconstruction
     from open3d_pnerf.camera import backproject, project
     from open3d_pnerf.data import load_sample
-    from open3d_pnerf.evaluation import heldout_views, mse_to_psnr, psnr
+    from open3d_pnerf.evaluation import heldout_views, psnr
 
     recon = Reconstruction.load(folder)
     seq = load_sample()
     scaled = seq.scaled_by(recon.config.image_scale)
     K, (h, w) = scaled.K, scaled.image_size
-    out, seen_errors = {}, []
+    out, seen_colors = {}, []
     for view in heldout_views(recon, seq):
         i = view["index"]
         depth = np.where(view["depth"] > 0, view["depth"], view["model"]["depth"]).astype(np.float32)
@@ -86,12 +86,12 @@ def heldout_frames(folder: Path) -> dict:
         seen = np.zeros(h * w, bool)
         seen[pixels[inside]] = True
         seen = seen.reshape(h, w)
-        squared = ((view["model"]["color"] - view["color"]) ** 2).mean(-1)
-        out[f"psnr_frame_{i}"] = psnr(view["model"]["color"], view["color"])
+        rendered, color = view["model"]["color"], view["color"]
+        out[f"psnr_frame_{i}"] = psnr(rendered, color)
         out[f"seen_frame_{i}"] = float(seen.mean())
-        out[f"psnr_unseen_frame_{i}"] = float(mse_to_psnr(squared[~seen].mean())) if (~seen).any() else None
-        seen_errors.append(squared[seen])
-    out["psnr_seen"] = float(mse_to_psnr(np.concatenate(seen_errors).mean()))
+        out[f"psnr_unseen_frame_{i}"] = psnr(rendered, color, ~seen) if (~seen).any() else None
+        seen_colors.append((rendered[seen], color[seen]))
+    out["psnr_seen"] = psnr(*(np.concatenate(c) for c in zip(*seen_colors)))
     return out
 
 
