@@ -44,6 +44,7 @@ ROWS = [  # label, key, factor, format
     ("common pixels (share of sensor pixels)", "common_share", 1, ".3f"),
     ("depth L1 on its own hits (mm)", "depth_l1_hits", 1000, ".1f"),
     ("its hits (share of sensor pixels)", "coverage", 1, ".3f"),
+    ("of the sensor pixels it misses, the share beside a depth edge", "holes_at_edges", 1, ".3f"),
     ("depth L1 where only the model covers (mm)", "depth_l1_only", 1000, ".1f"),
     ("pixels only the model covers (share)", "only_share", 1, ".3f"),
     ("errors within the 99.7% interval there", "within_3_only", 1, ".3f"),

@@ -10,7 +10,7 @@ import torch
 
 from .camera import pixel_coordinates
 from .data.sequence import RGBDSequence, evenly_spaced
-from .error_law import GAUSSIAN_SHARES, depth_nll, sigma_multiple
+from .error_law import GAUSSIAN_SHARES, depth_jump, depth_nll, sigma_multiple
 from .errors import InputError
 from .raycast import MeshRaycaster
 
@@ -235,7 +235,8 @@ def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, 
     and psnr_common (of the squared errors pooled over the frames' pixels),
     coverage, depth_l1 / depth_rmse / depth_rel / depth_pixels (the model: every pixel with
     sensor depth; a surface: its hits), depth_l1_hits, depth_l1_common and common_share,
-    depth_l1_only and only_share; the model's depth calibration under its error law (`dof`
+    depth_l1_only and only_share, holes_at_edges (of the pixels with sensor depth a method does not
+    cover, the share beside a depth edge of the held-out depth: :func:`held_out_edges`); the model's depth calibration under its error law (`dof`
     degrees of freedom): within_1..3 and nll over every pixel with sensor depth, within_3_only
     over its "only" pixels. Without sensor depth (image-only sequences): colour only."""
     views = list(views)
@@ -247,7 +248,7 @@ def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, 
         gt, color, sensor = v["depth"], v["color"], v["depth"] > 0
         out = {"model": v["model"], **v["surfaces"]}
         covers = {"model": v["model"]["opacity"] >= min_opacity, **{n: s["hit"] for n, s in v["surfaces"].items()}}
-        every = np.ones_like(sensor)
+        every, edges = np.ones_like(sensor), held_out_edges(gt) if with_depth else None
         common = np.logical_and.reduce([covers[n] for n in common_of])
         by_sensor = np.logical_or.reduce([covers[n] for n in sensor_based]) if sensor_based else ~every
         for name in names:
@@ -260,10 +261,21 @@ def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, 
                 sets["_common"] = common
             if main and name not in sensor_based:
                 sets["_only"] = covers[name] & ~by_sensor
-            pool.depth(o["depth"], gt, sensor, sets)
+            pool.depth(o["depth"], gt, sensor, sets, edges)
             if name == "model":
                 pool.calibration(o["depth"], o["depth_std"], gt, sensor, sets.get("_only", ~every))
     return {name: pool.scores(dof) for name, pool in pools.items()}
+
+
+EDGE_STEP = 0.1
+"""A depth edge of :func:`held_out_edges`: a step of at least this (m) between nearby pixels."""
+
+
+def held_out_edges(depth: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels of a sensor z-depth image (H, W) m (0: none) within the error law's edge
+    radius (:func:`~open3d_pnerf.error_law.depth_jump`) of a depth step of at least EDGE_STEP, or of
+    a pixel without depth (a silhouette against what the sensor did not return)."""
+    return depth_jump(np.where(depth > 0, depth, 1e3)) >= EDGE_STEP  # no depth: as if far away
 
 
 class _Pool:
@@ -288,7 +300,8 @@ class _Pool:
         for suffix, mask in sets.items():
             self.add(f"psnr{suffix}", err[mask])
 
-    def depth(self, pred, gt, sensor, sets: dict) -> None:
+    def depth(self, pred, gt, sensor, sets: dict, edges) -> None:
+        self.add("holes_at_edges", edges[sensor & ~sets["_hits"]])
         for suffix, mask in sets.items():
             self.add(f"depth_l1{suffix}", np.abs(pred - gt)[mask & sensor])
             self.add(f"share{suffix}", (mask & sensor)[sensor])
@@ -306,7 +319,7 @@ class _Pool:
         if self.depths:
             pred, gt = np.concatenate(self.depths, 1)
             out.update({f"depth_{m}": v for m, v in depth_errors(pred, gt, np.ones_like(gt, bool)).items()})
-            out.update({k: v for k, v in mean.items() if k.startswith("depth_l1_")})
+            out.update({k: v for k, v in mean.items() if k.startswith("depth_l1_") or k == "holes_at_edges"})
             out["coverage"] = mean.get("share_hits", 0.0)
             out.update({f"{name}_share": mean[f"share_{name}"] for name in ("common", "only") if f"share_{name}" in mean})
         for suffix, rows in self.law.items():

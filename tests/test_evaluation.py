@@ -29,6 +29,7 @@ from open3d_pnerf.evaluation import (
     depth_nll,
     exact_sigma_coverage,
     geometry_metrics,
+    held_out_edges,
     heldout_views,
     psnr,
     score_views,
@@ -275,6 +276,8 @@ def test_score_views_pools_known_errors_over_frames():
     assert tsdf["coverage"] == tsdf["common_share"] == 0.5
     assert tsdf["depth_l1"] == tsdf["depth_l1_hits"] == tsdf["depth_l1_common"] == pytest.approx(0.03, abs=1e-5)
     assert tsdf["depth_pixels"] == 40 and "depth_l1_only" not in tsdf and "within_1" not in tsdf
+    # the TSDF's holes (columns 4-7 of rows 1-5): row 1 lies beside row 0, which has no depth
+    assert tsdf["holes_at_edges"] == pytest.approx(0.2) and "holes_at_edges" not in model
     # without surfaces only the model is scored
     assert set(score_views([view_item(0, 0.1, 0.01, tsdf=False)], 0.9)) == {"model"}
 
@@ -309,6 +312,16 @@ def test_score_views_scores_common_own_and_model_only_pixels():
     # a reference surface outside common_of: its own hits only, and the common pixels do not shrink
     assert "depth_l1_common" not in scores["tsdf_default"] and scores["tsdf_default"]["coverage"] == 0.25
     assert scores["model"]["psnr_common"] == pytest.approx(20.0, abs=1e-4)
+
+
+def test_held_out_edges_mark_steps_and_missing_depth_within_the_edge_radius():
+    depth = np.full((6, 320), 2.0)
+    depth[:, :20] = 2.05  # a 5 cm step at column 20: not an edge
+    depth[:, 160:] = 2.2  # a 20 cm step: the two pixels each side of it (radius 2 at 320 pixels wide)
+    depth[3, 300] = 0  # no depth: the pixels within 2 of it (itself too) are beside an edge
+    edges = held_out_edges(depth)
+    assert np.flatnonzero(edges[0]).tolist() == [158, 159, 160, 161]
+    assert np.argwhere(edges[:, 200:]).tolist() == [[r, c - 200] for r in range(1, 6) for c in range(298, 303)]
 
 
 # -- comparison table and figure ---------------------------------------------------------------------
