@@ -48,7 +48,7 @@ COLUMNS = [  # label, key, factor, format
     ("F@20mm", "fscore_20mm", 1, ".3f"), ("F@50mm", "fscore_50mm", 1, ".3f"),
     ("depth L1 common (mm)", "depth_l1_common", 1000, ".1f"), ("common share", "common_share", 1, ".3f"),
     ("depth L1 own hits (mm)", "depth_l1_hits", 1000, ".1f"), ("coverage", "coverage", 1, ".3f"),
-    ("holes at depth edges", "holes_at_edges", 1, ".3f"),
+    ("holes at depth edges", "holes_at_edges", 1, ".3f"), ("sensor pixels at depth edges", "edge_share", 1, ".3f"),
     ("depth L1 model only (mm)", "depth_l1_only", 1000, ".1f"), ("model-only share", "only_share", 1, ".3f"),
     ("99.7% interval holds (model only)", "within_3_only", 1, ".3f"),
     ("PSNR (dB)", "psnr", 1, ".2f"), ("PSNR common (dB)", "psnr_common", 1, ".2f"),

@@ -236,8 +236,9 @@ def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, 
     coverage, depth_l1 / depth_rmse / depth_rel / depth_pixels (the model: every pixel with
     sensor depth; a surface: its hits), depth_l1_hits, depth_l1_common and common_share,
     depth_l1_only and only_share, holes_at_edges (of the pixels with sensor depth a method does not
-    cover, the share beside a depth edge of the held-out depth: :func:`held_out_edges`); the model's depth calibration under its error law (`dof`
-    degrees of freedom): within_1..3 and nll over every pixel with sensor depth, within_3_only
+    cover, the share beside a depth edge of the held-out depth: :func:`held_out_edges`) and
+    edge_share (that share of all pixels with sensor depth: holes_at_edges if holes fell anywhere);
+    the model's depth calibration under its error law (`dof` degrees of freedom): within_1..3 and nll over every pixel with sensor depth, within_3_only
     over its "only" pixels. Without sensor depth (image-only sequences): colour only."""
     views = list(views)
     names = ["model", *views[0]["surfaces"]] if views else ["model"]
@@ -302,6 +303,7 @@ class _Pool:
 
     def depth(self, pred, gt, sensor, sets: dict, edges) -> None:
         self.add("holes_at_edges", edges[sensor & ~sets["_hits"]])
+        self.add("edge_share", edges[sensor])
         for suffix, mask in sets.items():
             self.add(f"depth_l1{suffix}", np.abs(pred - gt)[mask & sensor])
             self.add(f"share{suffix}", (mask & sensor)[sensor])
@@ -319,7 +321,7 @@ class _Pool:
         if self.depths:
             pred, gt = np.concatenate(self.depths, 1)
             out.update({f"depth_{m}": v for m, v in depth_errors(pred, gt, np.ones_like(gt, bool)).items()})
-            out.update({k: v for k, v in mean.items() if k.startswith("depth_l1_") or k == "holes_at_edges"})
+            out.update({k: v for k, v in mean.items() if k.startswith("depth_l1_") or k in ("holes_at_edges", "edge_share")})
             out["coverage"] = mean.get("share_hits", 0.0)
             out.update({f"{name}_share": mean[f"share_{name}"] for name in ("common", "only") if f"share_{name}" in mean})
         for suffix, rows in self.law.items():

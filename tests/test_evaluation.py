@@ -278,6 +278,7 @@ def test_score_views_pools_known_errors_over_frames():
     assert tsdf["depth_pixels"] == 40 and "depth_l1_only" not in tsdf and "within_1" not in tsdf
     # the TSDF's holes (columns 4-7 of rows 1-5): row 1 lies beside row 0, which has no depth
     assert tsdf["holes_at_edges"] == pytest.approx(0.2) and "holes_at_edges" not in model
+    assert tsdf["edge_share"] == model["edge_share"] == pytest.approx(0.2)  # row 1 of rows 1-5
     # without surfaces only the model is scored
     assert set(score_views([view_item(0, 0.1, 0.01, tsdf=False)], 0.9)) == {"model"}
 
