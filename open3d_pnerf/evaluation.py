@@ -238,8 +238,9 @@ def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, 
     depth_l1_only and only_share, holes_at_edges (of the pixels with sensor depth a method does not
     cover, the share beside a depth edge of the held-out depth: :func:`held_out_edges`) and
     edge_share (that share of all pixels with sensor depth: holes_at_edges if holes fell anywhere);
-    the model's depth calibration under its error law (`dof` degrees of freedom): within_1..3 and nll over every pixel with sensor depth, within_3_only
-    over its "only" pixels. Without sensor depth (image-only sequences): colour only."""
+    the model's depth calibration under its error law (`dof` degrees of freedom): within_1..3 and
+    nll over every pixel with sensor depth, within_3_only over its "only" pixels. Without sensor
+    depth (image-only sequences): colour only."""
     views = list(views)
     names = ["model", *views[0]["surfaces"]] if views else ["model"]
     common_of = names if common_of is None else list(common_of)
@@ -321,7 +322,8 @@ class _Pool:
         if self.depths:
             pred, gt = np.concatenate(self.depths, 1)
             out.update({f"depth_{m}": v for m, v in depth_errors(pred, gt, np.ones_like(gt, bool)).items()})
-            out.update({k: v for k, v in mean.items() if k.startswith("depth_l1_") or k in ("holes_at_edges", "edge_share")})
+            out.update({k: v for k, v in mean.items()
+                        if k.startswith("depth_l1_") or k in ("holes_at_edges", "edge_share")})
             out["coverage"] = mean.get("share_hits", 0.0)
             out.update({f"{name}_share": mean[f"share_{name}"] for name in ("common", "only") if f"share_{name}" in mean})
         for suffix, rows in self.law.items():
