@@ -250,7 +250,8 @@ def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, 
         gt, color, sensor = v["depth"], v["color"], v["depth"] > 0
         out = {"model": v["model"], **v["surfaces"]}
         covers = {"model": v["model"]["opacity"] >= min_opacity, **{n: s["hit"] for n, s in v["surfaces"].items()}}
-        every, edges = np.ones_like(sensor), held_out_edges(gt) if with_depth else None
+        every = np.ones_like(sensor)
+        edges = held_out_edges(gt) if with_depth else None
         common = np.logical_and.reduce([covers[n] for n in common_of])
         by_sensor = np.logical_or.reduce([covers[n] for n in sensor_based]) if sensor_based else ~every
         for name in names:

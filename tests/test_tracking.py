@@ -289,7 +289,6 @@ def test_keypoints_start_frames_too_far_apart_for_odometry_near_their_motion(sam
     assert result.success and moved_m < 0.03 and turned_deg < 1.5  # measured 16 mm, 0.95 degrees
 
 
-
 def test_the_keypoint_start_does_not_depend_on_opencv_s_global_random_state(sample):
     """PnP-RANSAC draws from a generator of its own, so the start is the same whatever state
     OpenCV's global generator is left in (feature_registration's docstring)."""
@@ -300,6 +299,7 @@ def test_the_keypoint_start_does_not_depend_on_opencv_s_global_random_state(samp
         starts.append(feature_registration(source, sample[0].depth, target, sample.K))
     assert starts[0] is not None
     np.testing.assert_array_equal(starts[0], starts[1])
+
 
 def test_keypoints_give_no_start_without_texture(sample):
     uniform = np.full(sample.image_size, 128, np.uint8)
