@@ -1,8 +1,8 @@
 """Training losses as pure functions of renderings and targets (all per-ray means), the loss
 methods built from them, and the objective's settings (LossWeights, ObjectiveConfig).
 
-PNeRF: L = Kc L_color + Kd L_depth_pdf + Kz L_depth, each an L1 over coarse and fine renders
-(the paper's L_density is the depth-PDF term):
+PNeRF: L = Kc L_color + Kd L_depth_pdf + Kz L_depth, each an L1 over the fine render (and the
+coarse one with ObjectiveConfig.coarse_terms, as the paper; the paper's L_density is the depth-PDF term):
   L_color     = |C - C*|_1
   L_depth_pdf = sum_k |p_k - q_k|, p_k = w_k / (sum w + eps) the model's depth mass in bin k,
                 q_k the target Gaussian N(mu, sigma^2)'s mass in the same bin, renormalised
@@ -68,8 +68,14 @@ class ObjectiveConfig(Settings):
     """The depth terms' weights (Kd, Kz, and the DS-NeRF weight, so compared losses share one
     schedule) decay exponentially over training to this fraction (1.0 = constant): geometry
     first, colour refined late."""
-    coarse_terms: bool = setting(True, FLAG)
-    """Add the coarse-render terms (the paper's coarse + fine losses)."""
+    coarse_terms: bool = setting(False, FLAG)
+    """Add the coarse-render terms (the paper's coarse + fine losses). Off by default: the paper
+    trains a coarse network of its own, while here the coarse samples are a subset of the fine
+    render's, on the same field, and each stands for a bin as wide as their spacing, so the
+    coarse terms ask for density at whichever coarse sample lies in front of the surface inside
+    the target's bin: fog in front of every surface, which puts the rendered median in front of
+    the depth (benchmarks/README.md: where the constants come from). The forward_facing preset
+    keeps them: its Fern figures were measured with them."""
     pose_prior_weight: float = setting(1e-3, number(0))
     """Weight of the pose prior (mean over frames of 0.5 xi^T Sigma^-1 xi), with refine_poses."""
 

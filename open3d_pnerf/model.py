@@ -30,7 +30,8 @@ it to the pixel (at most 0.004 in all with 40 samples); densities, depth and opa
 
 class PNeRFModel(nn.Module):
     """field: a scene field; sampling: samples per ray; loss: a name in LOSSES or a LossMethod;
-    coarse_terms: the loss also scores the coarse render (the paper's coarse + fine terms).
+    coarse_terms: the loss also scores the coarse render (the paper's coarse + fine terms;
+    ObjectiveConfig.coarse_terms).
 
     For training, give the training cameras: poses (N, 4, 4) camera-to-world and K (3, 3),
     and optionally exposure (an ExposureGains of the N frames) and pose_corrections (a
@@ -40,7 +41,7 @@ class PNeRFModel(nn.Module):
     """
 
     def __init__(self, field: nn.Module, sampling: SamplingConfig, loss: str | LossMethod = "pnerf", *,
-                 coarse_terms: bool = True, poses: torch.Tensor | None = None, K: torch.Tensor | None = None,
+                 coarse_terms: bool = False, poses: torch.Tensor | None = None, K: torch.Tensor | None = None,
                  exposure: ExposureGains | None = None, pose_corrections: PoseCorrections | None = None,
                  pose_prior_weight: float = 0.0, depth_range: torch.Tensor | None = None):
         super().__init__()

@@ -374,3 +374,47 @@ def test_the_sigma_floor_never_binds_on_the_fine_render_of_a_target_ray(sigma_z)
 
     assert (half_width_at_mu(fine.edges) < sigma).all()
     assert (half_width_at_mu(coarse.edges) > sigma).all()  # coarse bins are ~0.34 wide
+
+
+def test_on_a_shared_field_the_coarse_terms_reward_density_in_front_of_the_surface():
+    """Why `objective.coarse_terms` is off by default: the coarse render composites the 16
+    stratified samples alone, each standing for a bin ~0.34 m wide, so where a ray's coarse
+    sample falls in front of the surface inside the bin that holds the target, only density at
+    that sample (fog in front of the surface) puts the coarse weight in the right bin. The fine
+    render, whose guided samples resolve the target, asks for the opposite: a surface at the
+    target and nothing in front."""
+    from open3d_pnerf.rendering import Rays, SamplingConfig, render_rays
+
+    class Surface:
+        """The density whose weights are N(mu, sigma^2) (its hazard rate), plus `fog` (1/m) from
+        `front` m before mu to 3 sigma before it; mu, sigma (R,) z metres of R rays along z."""
+
+        def __init__(self, mu, sigma, fog=0.0, front=0.0):
+            self.mu, self.sigma, self.fog, self.front = mu, sigma, fog, front
+
+        def encode(self, x, known=None):
+            return x
+
+        def geometry(self, x, encoded=None):
+            per_ray = x.shape[0] // len(self.mu)
+            mu, sigma = (a.repeat_interleave(per_ray) for a in (self.mu, self.sigma))
+            u = (x[:, 2] - mu) / sigma
+            hazard = torch.exp(-0.5 * u**2 - 0.5 * math.log(2 * math.pi) - torch.special.log_ndtr(-u)) / sigma
+            fog = (x[:, 2] >= mu - self.front) & (x[:, 2] < mu - 3 * sigma)
+            return hazard.clamp(max=1e4) + self.fog * fog, torch.zeros(x.shape[0], 1)
+
+        def color(self, features, d):
+            return torch.full((features.shape[0], 3), 0.5)
+
+    r = 256
+    rays = Rays(torch.zeros(r, 3), torch.tensor([[0.0, 0.0, 1.0]]).expand(r, 3).clone(), torch.full((r,), 0.5),
+                torch.full((r,), 6.0), torch.ones(r))
+    mu, sigma = torch.linspace(1.0, 5.0, r), torch.full((r,), 0.01)
+    terms = {}
+    for name, field in (("surface", Surface(mu, sigma)), ("fog in front", Surface(mu, sigma, 20.0, 0.17))):
+        fine, coarse = render_rays(field, rays, SamplingConfig(16, 8, 16), mu, sigma,
+                                   torch.Generator().manual_seed(0), jitter=False, with_coarse=True)
+        terms[name] = [depth_pdf_l1(x.weights, x.edges, mu, sigma).mean().item() for x in (fine, coarse)]
+    assert terms["surface"][0] < 0.5 * terms["fog in front"][0]  # fine: the surface
+    # coarse: the fog (sigma is floored at half a coarse bin, so neither matches the target there)
+    assert terms["fog in front"][1] < 0.9 * terms["surface"][1]
