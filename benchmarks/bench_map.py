@@ -47,6 +47,8 @@ COLUMNS = [  # label, key, factor, format
     ("acc. (mm)", "accuracy", 1000, ".1f"), ("compl. (mm)", "completeness", 1000, ".1f"),
     ("F@20mm", "fscore_20mm", 1, ".3f"), ("F@50mm", "fscore_50mm", 1, ".3f"),
     ("depth L1 common (mm)", "depth_l1_common", 1000, ".1f"), ("common share", "common_share", 1, ".3f"),
+    ("depth L1 common, beside depth edges (mm)", "depth_l1_common_edges", 1000, ".1f"),
+    ("depth L1 common, away from edges (mm)", "depth_l1_common_flat", 1000, ".1f"),
     ("depth L1 own hits (mm)", "depth_l1_hits", 1000, ".1f"), ("coverage", "coverage", 1, ".3f"),
     ("holes at depth edges", "holes_at_edges", 1, ".3f"), ("sensor pixels at depth edges", "edge_share", 1, ".3f"),
     ("depth L1 model only (mm)", "depth_l1_only", 1000, ".1f"), ("model-only share", "only_share", 1, ".3f"),

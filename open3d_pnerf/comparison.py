@@ -41,6 +41,8 @@ ROWS = [  # label, key, factor, format
     ("PSNR, whole frame (dB)", "psnr", 1, ".2f"), ("PSNR on common pixels (dB)", "psnr_common", 1, ".2f"),
     ("PSNR on its own hits (dB)", "psnr_hits", 1, ".2f"), ("SSIM, whole frame", "ssim", 1, ".3f"),
     ("depth L1 on common pixels (mm)", "depth_l1_common", 1000, ".1f"),
+    ("depth L1 on common pixels beside a depth edge (mm)", "depth_l1_common_edges", 1000, ".1f"),
+    ("depth L1 on common pixels away from depth edges (mm)", "depth_l1_common_flat", 1000, ".1f"),
     ("common pixels (share of sensor pixels)", "common_share", 1, ".3f"),
     ("depth L1 on its own hits (mm)", "depth_l1_hits", 1000, ".1f"),
     ("its hits (share of sensor pixels)", "coverage", 1, ".3f"),

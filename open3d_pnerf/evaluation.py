@@ -237,7 +237,9 @@ def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, 
     sensor depth; a surface: its hits), depth_l1_hits, depth_l1_common and common_share,
     depth_l1_only and only_share, holes_at_edges (of the pixels with sensor depth a method does not
     cover, the share beside a depth edge of the held-out depth: :func:`held_out_edges`) and
-    edge_share (that share of all pixels with sensor depth: holes_at_edges if holes fell anywhere);
+    edge_share (that share of all pixels with sensor depth: holes_at_edges if holes fell anywhere),
+    depth_l1_common_edges and depth_l1_common_flat (depth L1 on the common pixels beside a depth
+    edge and away from every one);
     the model's depth calibration under its error law (`dof` degrees of freedom): within_1..3 and
     nll over every pixel with sensor depth, within_3_only over its "only" pixels. Without sensor
     depth (image-only sequences): colour only."""
@@ -309,6 +311,9 @@ class _Pool:
         for suffix, mask in sets.items():
             self.add(f"depth_l1{suffix}", np.abs(pred - gt)[mask & sensor])
             self.add(f"share{suffix}", (mask & sensor)[sensor])
+        if "_common" in sets:  # where on the common pixels the error lies: beside depth edges or away
+            for part, where in (("edges", edges), ("flat", ~edges)):
+                self.add(f"depth_l1_common_{part}", np.abs(pred - gt)[sets["_common"] & sensor & where])
         whole = sets[""] & sensor
         self.depths.append(np.stack([pred[whole], gt[whole]]))
 

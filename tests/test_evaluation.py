@@ -283,6 +283,18 @@ def test_score_views_pools_known_errors_over_frames():
     assert set(score_views([view_item(0, 0.1, 0.01, tsdf=False)], 0.9)) == {"model"}
 
 
+def test_score_views_splits_the_common_depth_error_at_depth_edges():
+    """Row 1 lies beside row 0, which has no depth: the common pixels (the TSDF's left half) there
+    are beside an edge, rows 2-5 away from every one."""
+    item = view_item(0, 0.1, 0.01)
+    item["model"]["depth"][1] = item["depth"][1] + 0.2  # the model is 0.2 m off beside the edge only
+    model, tsdf = (score_views([item], min_opacity=0.9)[n] for n in ("model", "tsdf"))
+    assert model["depth_l1_common_edges"] == pytest.approx(0.2, abs=1e-6)
+    assert model["depth_l1_common_flat"] == pytest.approx(0.01, abs=1e-6)
+    assert model["depth_l1_common"] == pytest.approx((4 * 0.2 + 16 * 0.01) / 20, abs=1e-6)
+    assert tsdf["depth_l1_common_edges"] == tsdf["depth_l1_common_flat"] == pytest.approx(0.03, abs=1e-6)
+
+
 def test_score_views_scores_common_own_and_model_only_pixels():
     item = view_item(3, 0.1, 0.01, tsdf=False)
     color, gt, model = item["color"], item["depth"], item["model"]
