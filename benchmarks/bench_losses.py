@@ -41,8 +41,7 @@ VARIANTS = {  # name -> config overrides
     "pnerf": dict(loss="pnerf"),
     "dsnerf": dict(loss="dsnerf"),
     "photometric": dict(loss="photometric"),
-    "pnerf_fine_terms": {"loss": "pnerf", "objective.coarse_terms": False},  # the default (not on Fern)
-    "pnerf_coarse_terms": {"loss": "pnerf", "objective.coarse_terms": True},
+    "pnerf_fine_terms": {"loss": "pnerf", "objective.coarse_terms": False},  # the default, except on Fern
     "pnerf_uniform_batches": {"loss": "pnerf", "optimizer.target_ray_share": 0.0},
     # on Fern, settings measured against its preset (forward_facing: NDC, 32 coarse samples)
     "pnerf_box": {"loss": "pnerf", "ndc": "off"},

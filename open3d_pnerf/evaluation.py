@@ -308,12 +308,13 @@ class _Pool:
     def depth(self, pred, gt, sensor, sets: dict, edges) -> None:
         self.add("holes_at_edges", edges[sensor & ~sets["_hits"]])
         self.add("edge_share", edges[sensor])
+        err = np.abs(pred - gt)
         for suffix, mask in sets.items():
-            self.add(f"depth_l1{suffix}", np.abs(pred - gt)[mask & sensor])
+            self.add(f"depth_l1{suffix}", err[mask & sensor])
             self.add(f"share{suffix}", (mask & sensor)[sensor])
         if "_common" in sets:  # where on the common pixels the error lies: beside depth edges or away
             for part, where in (("edges", edges), ("flat", ~edges)):
-                self.add(f"depth_l1_common_{part}", np.abs(pred - gt)[sets["_common"] & sensor & where])
+                self.add(f"depth_l1_common_{part}", err[sets["_common"] & sensor & where])
         whole = sets[""] & sensor
         self.depths.append(np.stack([pred[whole], gt[whole]]))
 
