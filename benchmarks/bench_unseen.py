@@ -10,8 +10,11 @@ unseen_ramp), the share of errors inside the law's 99.7% interval and the mean n
 log-likelihood on both sets: the chosen values should hold 99% where only the model covers and
 leave the common pixels' calibration as it was. Then the same for a grid of (edge, radius) with
 the unseen term at its default: the range of the rendered depths within `radius` (pixels of a
-320-pixel-wide image) of each pixel, times `edge`, added to sigma (the least widening that holds
-99% where only the model covers is the choice). `--dataset 7scenes` checks the choices elsewhere.
+320-pixel-wide image) of each pixel, times `edge`, added to sigma, with the through term at its
+default (the least widening that holds 99% where only the model covers is the choice). Then the
+through term with the other two at their defaults: how far beyond the rendered point a training
+view's depth saw, by more than `margin` (ObservedSurface.seen_through), over the 99.73% interval's
+multiple, times `through`, added to sigma. `--dataset 7scenes` checks the choices elsewhere.
 
     python benchmarks/bench_unseen.py [--dataset tum] [--name unseen]
 
@@ -28,17 +31,20 @@ from pathlib import Path
 import numpy as np
 from bench_suite import OUT, load, machine, poses_for
 
-from open3d_pnerf.error_law import GAUSSIAN_SHARES
+from open3d_pnerf.error_law import EDGE_RADIUS, GAUSSIAN_SHARES
+from open3d_pnerf.observed import SEEN_THROUGH_MARGIN
 
 UNSEEN = (0.0, 0.2, 0.3, 0.5)
 RAMPS = (0.01, 0.02, 0.05)
 EDGES = (0.0, 0.1, 0.2, 0.3, 0.5)
 RADII = (1, 2, 4)  # pixels of a 320-pixel-wide image
+THROUGHS = (0.0, 0.5, 1.0, 2.0)
+MARGINS = (0.03, 0.1)  # m
 
 
 def collect(dataset: str) -> tuple[dict, object]:
-    """{set: {err, sigma (law without the unseen and edge terms), z, distance, jump_<r> for r in
-    RADII}} over the held-out frames."""
+    """{set: {err, sigma (law without the unseen, edge and through terms), z, distance, jump_<r> for r
+    in RADII, gap_<m> (seen through by more than m metres) for m in MARGINS}} over the held-out frames."""
     import open3d_pnerf as pn
     from open3d_pnerf.camera import backproject
     from open3d_pnerf.error_law import depth_jump
@@ -60,23 +66,28 @@ def collect(dataset: str) -> tuple[dict, object]:
         covers = (model["opacity"] >= cfg.export.min_opacity) & (gt > 0)
         hit = v["surfaces"]["sensor"]["hit"]
         jumps = [depth_jump(model["depth"], r / 320) for r in RADII]
+        pose = recon.poses[v["index"]]
+        camera = pose[:3, 3]
         for name, mask in (("only", covers & ~hit), ("common", covers & hit)):
-            points = backproject(model["depth"], K, recon.poses[v["index"]], mask)[0]
+            points = backproject(model["depth"], K, pose, mask)[0]
             rows[name].append(np.stack([np.abs(model["depth"] - gt)[mask], model["depth_std"][mask],
-                                        model["depth"][mask], observed.distance(points)] + [j[mask] for j in jumps]))
-    keys = ("err", "sigma", "z", "distance", *(f"jump_{r}" for r in RADII))
+                                        model["depth"][mask], observed.distance(points)] + [j[mask] for j in jumps]
+                                       + [observed.seen_through(points, camera, m) for m in MARGINS]))
+    keys = ("err", "sigma", "z", "distance", *(f"jump_{r}" for r in RADII), *(f"gap_{m}" for m in MARGINS))
     data = {name: dict(zip(keys, np.concatenate(r, 1))) for name, r in rows.items()}
     return data, law
 
 
-def score(data: dict, law, unseen: float, ramp: float, edge: float = 0.0, radius: int = RADII[0]) -> dict:
+def score(data: dict, law, unseen: float, ramp: float, edge: float = 0.0, radius: int = RADII[0],
+          through: float = 0.0, margin: float = MARGINS[0]) -> dict:
     """Shares within the 68.3% and 99.7% intervals and mean NLL of each pixel set under the law
-    with this unseen term and edge term."""
-    law = dataclasses.replace(law, unseen=unseen, unseen_ramp=ramp, edge=edge)
+    with this unseen term, edge term and through term."""
+    law = dataclasses.replace(law, unseen=unseen, unseen_ramp=ramp, edge=edge, through=through)
     spread_free = dataclasses.replace(law, scale=1.0, floor=0.0)  # sigma already holds scale and floor
     out = {}
     for name, d in data.items():
-        sigma = np.sqrt(d["sigma"] ** 2 + spread_free.sigma(0 * d["z"], d["z"], d["distance"], d[f"jump_{radius}"]) ** 2)
+        sigma = np.sqrt(d["sigma"] ** 2 + spread_free.sigma(0 * d["z"], d["z"], d["distance"], d[f"jump_{radius}"],
+                                                            d[f"gap_{margin}"]) ** 2)
         out[name] = {"within_1": float(np.mean(d["err"] <= law.interval(GAUSSIAN_SHARES[1]) * sigma)),
                      "within_3": float(np.mean(d["err"] <= law.interval(GAUSSIAN_SHARES[3]) * sigma)),
                      "nll": float(np.mean(law.nll(d["err"], sigma))), "median_sigma_mm": 1000 * float(np.median(sigma))}
@@ -90,15 +101,21 @@ def main():
     args = ap.parse_args()
     data, law = collect(args.dataset)
     grid = [{"unseen": u, "unseen_ramp": r, **score(data, law, u, r)} for u in UNSEEN for r in (RAMPS if u else RAMPS[:1])]
-    edge_grid = [{"edge": e, "radius_px": r, **score(data, law, law.unseen, law.unseen_ramp, e, r)}
+    edge_grid = [{"edge": e, "radius_px": r, **score(data, law, law.unseen, law.unseen_ramp, e, r, law.through,
+                                                     SEEN_THROUGH_MARGIN)}
                  for e in EDGES for r in (RADII if e else RADII[:1])]
+    radius = round(EDGE_RADIUS * 320)
+    through_grid = [{"through": t, "margin": m, **score(data, law, law.unseen, law.unseen_ramp, law.edge, radius, t, m),
+                     "flagged": {name: float(np.mean(d[f"gap_{m}"] > 0)) for name, d in data.items()}}
+                    for m in MARGINS for t in THROUGHS]
     sizes = {name: len(d["err"]) for name, d in data.items()}
     quantiles = {name: {"distance_mm": [1000 * float(q) for q in np.quantile(d["distance"], [0.5, 0.9])],
                         "error_mm": [1000 * float(q) for q in np.quantile(d["err"], [0.5, 0.9])]}
                  for name, d in data.items()}
     result = {"meta": {"dataset": args.dataset, "machine": machine(), "law": {"scale": law.scale, "floor": law.floor,
                                                                              "dof": law.dof}},
-              "pixels": sizes, "quantiles": quantiles, "grid": grid, "edge_grid": edge_grid}
+              "pixels": sizes, "quantiles": quantiles, "grid": grid, "edge_grid": edge_grid,
+              "through_grid": through_grid}
     (OUT / f"{args.name}.json").write_text(json.dumps(result, indent=1))
     lines = [f"{args.dataset}, `fast` preset, GT poses, seed 0, held-out frames; {machine()}. Pixels only the model "
              f"covers: {sizes['only']} (distance to the observed surfaces median / 90%: "
@@ -112,14 +129,25 @@ def main():
         o, c = g["only"], g["common"]
         lines.append(f"| {g['unseen']:g} | {1000 * g['unseen_ramp']:g} | {o['within_3']:.4f} | {o['nll']:.2f} | "
                      f"{o['median_sigma_mm']:.0f} | {c['within_3']:.4f} | {c['nll']:.3f} | {c['median_sigma_mm']:.1f} |")
-    lines += ["", f"The edge term, with the unseen term at its default ({law.unseen:g}, {1000 * law.unseen_ramp:g} mm); "
-              "radius in pixels of a 320-pixel-wide image:", "",
+    lines += ["", f"The edge term, with the unseen term at its default ({law.unseen:g}, {1000 * law.unseen_ramp:g} mm) "
+              f"and the through term at its ({law.through:g}, {SEEN_THROUGH_MARGIN:g} m); radius in pixels of a "
+              "320-pixel-wide image:", "",
               "| edge | radius (px) | only: within 68.3% | only: within 99.7% | only: NLL | common: within 68.3% | "
               "common: within 99.7% | common: NLL | common: median sigma (mm) |", "|" + " --- |" * 9]
     for g in edge_grid:
         o, c = g["only"], g["common"]
         lines.append(f"| {g['edge']:g} | {g['radius_px']} | {o['within_1']:.3f} | {o['within_3']:.4f} | {o['nll']:.2f} | "
                      f"{c['within_1']:.3f} | {c['within_3']:.4f} | {c['nll']:.3f} | {c['median_sigma_mm']:.1f} |")
+    lines += ["", f"The through term, with the unseen and edge terms at their defaults ({law.unseen:g}, "
+              f"{1000 * law.unseen_ramp:g} mm; {law.edge:g}, {radius} px); flagged: the share of pixels a training "
+              "view saw through by more than the margin:", "",
+              "| margin (m) | through | only: flagged | only: within 68.3% | only: within 99.7% | only: NLL | "
+              "common: flagged | common: within 68.3% | common: within 99.7% | common: NLL |", "|" + " --- |" * 10]
+    for g in through_grid:
+        o, c, f = g["only"], g["common"], g["flagged"]
+        lines.append(f"| {g['margin']:g} | {g['through']:g} | {f['only']:.3f} | {o['within_1']:.3f} | "
+                     f"{o['within_3']:.4f} | {o['nll']:.3f} | {f['common']:.3f} | {c['within_1']:.3f} | "
+                     f"{c['within_3']:.4f} | {c['nll']:.3f} |")
     (OUT / f"{args.name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

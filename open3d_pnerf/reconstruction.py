@@ -42,9 +42,10 @@ class Reconstruction:
     (learned for training frames, interpolated in time for the others; ones without exposure
     compensation); see :meth:`render`. depth_error: how the model's depth spread becomes a
     calibrated 1-sigma error (:meth:`calibrate_depth_sigma`). observed: the surfaces the
-    training frames' depth saw (None without depth): away from them the law widens the rendered
-    depth sigma (:meth:`render`). geometry: the exported mesh and point cloud with their
-    per-vertex and per-point depth sigma (``recon.mesh``, ...). frames: the RGB-D frames it was
+    training frames' depth saw, and those views (None without depth): away from them, and where a
+    training view saw past the rendered point, the law widens the rendered depth sigma
+    (:meth:`render`). geometry: the exported mesh and point cloud with their per-vertex and
+    per-point depth sigma (``recon.mesh``, ...). frames: the RGB-D frames it was
     built from (an :class:`~open3d_pnerf.RGBDSequence` of all N, read lazily; saved with it), which
     :meth:`extend` replays; None when not kept.
     """
@@ -149,18 +150,23 @@ class Reconstruction:
         model's depth distribution along each ray, made a calibrated 1-sigma error by
         :attr:`depth_error`; where the rendered point lies away
         from every surface the training frames' depth observed, :attr:`observed`, the law's
-        unseen term widens it to a share of the depth, and beside a depth edge its edge term to
-        a share of the step), opacity (H, W) in [0, 1].
+        unseen term widens it to a share of the depth, beside a depth edge its edge term to
+        a share of the step, and where a training view saw past the rendered point its through
+        term to the distance it saw), opacity (H, W) in [0, 1].
         """
         pose, carried = self._camera(pose)
         intrinsic = check_intrinsic(intrinsic or carried or self.intrinsic)
         h, w = intrinsic.height, intrinsic.width
         v, u = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
         out = self.render_pixels(pose, intrinsic, u.reshape(-1).float(), v.reshape(-1).float(), chunk)
-        unseen = self.unseen_distance(pose, intrinsic_matrix(intrinsic), u.reshape(-1).cpu().numpy(),
-                                      v.reshape(-1).cpu().numpy(), out["depth"])
+        unseen, through = None, None
+        if self.observed is not None:
+            points = self._points(pose, intrinsic_matrix(intrinsic), u.reshape(-1).cpu().numpy(),
+                                  v.reshape(-1).cpu().numpy(), out["depth"])
+            unseen, through = self.observed.distance(points), self.observed.seen_through(points, pose[:3, 3])
         jump = depth_jump(out["depth"].reshape(h, w)).reshape(-1)
-        out["depth_std"] = self.depth_error.sigma(out["depth_std"], out["depth"], unseen, jump).astype(np.float32)
+        out["depth_std"] = self.depth_error.sigma(out["depth_std"], out["depth"], unseen, jump,
+                                                  through).astype(np.float32)
         if frame is not None:
             if not (isinstance(frame, (int, np.integer)) and 0 <= frame < len(self.poses)):
                 raise InputError(f"frame must be a frame index in [0, {len(self.poses)}), got {frame!r}")
@@ -192,7 +198,13 @@ class Reconstruction:
         frames' depth observed (:attr:`observed`); None without them."""
         if self.observed is None:
             return None
-        return self.observed.distance(unproject(K, u, v, depth) @ pose[:3, :3].T + pose[:3, 3])
+        return self.observed.distance(self._points(pose, K, u, v, depth))
+
+    @staticmethod
+    def _points(pose: np.ndarray, K: np.ndarray, u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """(R, 3) world points (m) of pixels (u, v) (R,) at z-depths `depth` (R,) m of a camera-to-world
+        pose (4, 4) with intrinsic matrix K (3, 3)."""
+        return unproject(K, u, v, depth) @ pose[:3, :3].T + pose[:3, 3]
 
     def depth_pdf(self, pose, pixels_uv, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None) -> dict:
         """The model's depth distribution along the rays of R pixels, in z-depth metres.

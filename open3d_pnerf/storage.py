@@ -3,7 +3,8 @@
 The folder holds ``reconstruction.json`` (format version, config, scene box, depth range,
 intrinsic, frame split, timestamps, depth-error law, statistics), ``model.pt`` (the field's
 weights only), ``poses.npy``, ``covariances.npy``, ``color_gains.npy``, ``observed.npy`` (the centres of the
-voxels the training frames' depth saw, when there was depth), ``mesh.ply`` (with
+voxels the training frames' depth saw, when there was depth), ``observed_depths.npy`` (the
+nearest surface each training view saw around each pixel), ``mesh.ply`` (with
 per-vertex ``depth_sigma`` and ``quality``), ``point_cloud.ply`` (per-point, the same), ``frames/``
 (the frames it was built from, as an Open3D folder: what extending the map replays), and the
 trajectory as ``trajectory_tum.txt``, ``trajectory.log`` and Open3D's ``trajectory.json`` (a
@@ -80,6 +81,8 @@ def write_folder(recon, directory, frames: bool = True) -> Path:
     }
     if recon.observed is not None:
         writes[d / "observed.npy"] = lambda p: np.save(p, recon.observed.centres)
+        if recon.observed.depths is not None:
+            writes[d / "observed_depths.npy"] = lambda p: np.save(p, recon.observed.depths)
     geometry, empty = recon.geometry or Geometry(), []
     for name, shape, write in (
         ("mesh.ply", geometry.mesh, lambda p: write_mesh_ply(p, geometry.mesh, geometry.mesh_sigma)),
@@ -94,6 +97,8 @@ def write_folder(recon, directory, frames: bool = True) -> Path:
     _swap_in(staged, d / FRAMES)
     if recon.observed is None:
         (d / "observed.npy").unlink(missing_ok=True)
+    if recon.observed is None or recon.observed.depths is None:
+        (d / "observed_depths.npy").unlink(missing_ok=True)
     for name in empty:
         (d / name).unlink(missing_ok=True)  # never leave a stale file from an earlier run
         warnings.warn(f"{name} not written: the model has no confident surface yet (train longer)")
@@ -182,11 +187,15 @@ def read_folder(directory, device: str | None = None) -> dict:
     gains = _load_array(d / "color_gains.npy", (n, 3))
     if not (gains > 0).all():
         raise CheckpointError(f"{d / 'color_gains.npy'}: colour gains must be > 0")
-    observed = None
+    poses, observed = _load_array(d / "poses.npy", (n, 4, 4)), None
     if voxel is not None:
-        observed = ObservedSurface(float(voxel), _load_array(d / "observed.npy", (None, 3)))
+        depths = None  # the training views' depth, in folders that have it: seen through
+        if (d / "observed_depths.npy").is_file():
+            depths = _load_array(d / "observed_depths.npy", (len(train), intrinsic.height, intrinsic.width))
+        observed = ObservedSurface(float(voxel), _load_array(d / "observed.npy", (None, 3)), depths,
+                                   intrinsic_matrix(intrinsic), poses[train])
     return dict(frames=_read_frames(d / FRAMES, n, intrinsic.width, intrinsic.height, config.image_scale),
-                model=model, config=config, poses=_load_array(d / "poses.npy", (n, 4, 4)),
+                model=model, config=config, poses=poses,
                 covariances=_load_array(d / "covariances.npy", (n, 6, 6)), intrinsic=intrinsic, train_indices=train,
                 holdout_indices=holdout, timestamps=timestamps, color_gains=gains, depth_error=law, observed=observed,
                 geometry=Geometry(mesh, mesh_sigma, cloud, point_sigma), stats=meta.get("stats") or {})
@@ -255,17 +264,19 @@ def _depth_range(value) -> np.ndarray | None:
 
 def _error_law(value) -> DepthErrorLaw:
     """A saved depth_error: {scale > 0, floor >= 0, dof > 0 or null (a Gaussian)} and, from folders
-    that have them, unseen >= 0, unseen_ramp > 0 and edge >= 0 (the defaults otherwise; ValueError
-    if wrong)."""
+    that have them, unseen >= 0, unseen_ramp > 0, edge >= 0 and through >= 0 (the defaults
+    otherwise; ValueError if wrong)."""
     keys = {"scale", "floor", "dof"}
-    if not isinstance(value, dict) or not keys <= set(value) <= keys | {"unseen", "unseen_ramp", "edge"}:
-        raise ValueError(f"depth_error {value!r} is not {{scale, floor, dof[, unseen, unseen_ramp, edge]}}")
+    if not isinstance(value, dict) or not keys <= set(value) <= keys | {"unseen", "unseen_ramp", "edge", "through"}:
+        raise ValueError(f"depth_error {value!r} is not {{scale, floor, dof[, unseen, unseen_ramp, edge, through]}}")
     number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)  # noqa: E731
     scale, floor, dof = value["scale"], value["floor"], value["dof"]
-    unseen, ramp, edge = (value.get(k, getattr(DepthErrorLaw, k)) for k in ("unseen", "unseen_ramp", "edge"))
+    unseen, ramp, edge, through = (value.get(k, getattr(DepthErrorLaw, k))
+                                   for k in ("unseen", "unseen_ramp", "edge", "through"))
     if not (number(scale) and scale > 0 and number(floor) and floor >= 0 and (dof is None or number(dof) and dof > 0)
-            and number(unseen) and unseen >= 0 and number(ramp) and ramp > 0 and number(edge) and edge >= 0):
+            and number(unseen) and unseen >= 0 and number(ramp) and ramp > 0 and number(edge) and edge >= 0
+            and number(through) and through >= 0):
         raise ValueError(f"depth_error {value!r}: need scale > 0, floor >= 0, dof > 0 or null, unseen >= 0, "
-                         "unseen_ramp > 0 and edge >= 0")
+                         "unseen_ramp > 0, edge >= 0 and through >= 0")
     return DepthErrorLaw(float(scale), float(floor), np.inf if dof is None else float(dof), float(unseen), float(ramp),
-                         float(edge))
+                         float(edge), float(through))

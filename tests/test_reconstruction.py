@@ -478,7 +478,8 @@ def test_training_beats_an_untrained_model_on_held_out_frames(recon, sample):
 def test_save_writes_every_file(saved, recon):
     names = {p.name for p in saved.iterdir()}
     expected = {"mesh.ply", "point_cloud.ply", "model.pt", "reconstruction.json", "poses.npy",
-                "covariances.npy", "color_gains.npy", "observed.npy", "trajectory_tum.txt", "trajectory.log"}
+                "covariances.npy", "color_gains.npy", "observed.npy", "observed_depths.npy", "trajectory_tum.txt",
+                "trajectory.log"}
     assert expected <= names
     assert not [n for n in names if n.startswith(".")]  # no temporary files left
     meta = json.loads((saved / "reconstruction.json").read_text())
@@ -508,6 +509,8 @@ def test_load_renders_the_same_image(saved, recon):
     np.testing.assert_allclose(loaded.color_gains, recon.color_gains)
     assert loaded.observed.voxel_size == recon.observed.voxel_size
     np.testing.assert_array_equal(loaded.observed.centres, recon.observed.centres)
+    np.testing.assert_array_equal(loaded.observed.depths, recon.observed.depths)
+    np.testing.assert_allclose(loaded.observed.poses, recon.observed.poses)
     assert len(loaded.point_cloud.points) == len(recon.point_cloud.points)
     np.testing.assert_allclose(loaded.point_sigma, recon.point_sigma, rtol=1e-6)
     K_a = np.asarray(loaded.intrinsic.intrinsic_matrix)
@@ -607,8 +610,9 @@ def test_depth_std_is_the_scaled_model_spread_with_a_relative_floor(recon):
     K = np.asarray(recon.intrinsic.intrinsic_matrix)
     points = backproject(widened["depth"], K, pose, np.ones_like(widened["depth"], bool))[0]
     distance = recon.observed.distance(points).reshape(widened["depth"].shape)
-    np.testing.assert_allclose(widened["depth_std"], law.sigma(raw["depth_std"], raw["depth"], distance, jump),
-                               rtol=1e-5)
+    through = recon.observed.seen_through(points, pose[:3, 3]).reshape(widened["depth"].shape)
+    np.testing.assert_allclose(widened["depth_std"], law.sigma(raw["depth_std"], raw["depth"], distance, jump,
+                                                               through), rtol=1e-5)
     far = distance >= law.unseen_ramp
     assert far.any() and (distance == 0).any()  # a briefly trained model: some pixels on what it saw, some off
     assert (widened["depth_std"][far] >= law.unseen * raw["depth"][far] * (1 - 1e-6)).all()
@@ -639,6 +643,17 @@ def test_the_edge_term_widens_sigma_by_a_share_of_the_local_depth_step():
     np.testing.assert_allclose(law.sigma(spread, z, None, np.array([0.0, 0.5, 1.0])),
                                np.hypot(seen, EDGE * np.array([0.0, 0.5, 1.0])))
     np.testing.assert_allclose(law.sigma(spread, z, None, np.zeros(3)), seen)
+
+
+def test_the_through_term_puts_the_surface_a_view_saw_beyond_the_point_at_the_99_7_percent_interval():
+    law = DepthErrorLaw(2.0, 0.01, 3.0)
+    spread, z, gap = np.full(3, 0.01), np.full(3, 2.0), np.array([0.0, 0.5, 1.0])
+    seen = law.sigma(spread, z)
+    k = law.interval(0.9973002039367398)
+    assert k > 3  # 3 degrees of freedom: wider than a Gaussian's 3 sigma
+    np.testing.assert_allclose(law.sigma(spread, z, None, None, gap), np.hypot(seen, gap / k))
+    alone = DepthErrorLaw(1.0, 0.0, np.inf).sigma(np.zeros(3), z, None, None, gap)
+    np.testing.assert_allclose(3 * alone, gap)  # a Gaussian's 99.73% interval: 3 sigma, reaching the surface
 
 
 def test_likelihood_fit_recovers_the_scale_floor_and_tails_of_known_errors():
