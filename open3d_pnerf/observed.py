@@ -20,7 +20,7 @@ import functools
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .camera import backproject
+from .camera import backproject, nearest_pixels
 from .errors import InputError
 
 
@@ -154,17 +154,13 @@ class ObservedSurface:
             views = np.argsort(np.linalg.norm(self.poses[:, :3, 3] - camera, axis=1))[:SEEN_THROUGH_VIEWS]
         flat, gap = points.reshape(-1, 3), np.zeros(out.size)
         h, w = self.depths.shape[1:]
-        for depth, pose in zip(self.depths[views], self.poses[views]):
+        for k in views:  # one view at a time: indexing the stack by `views` would copy every map
+            pose = self.poses[k]
             cam = (flat - pose[:3, 3]) @ pose[:3, :3]
-            z = cam[:, 2]
-            front = z > 1e-3
-            u = np.full(len(z), -1)
-            v = np.full(len(z), -1)
-            u[front] = np.round(self.K[0, 0] * cam[front, 0] / z[front] + self.K[0, 2])
-            v[front] = np.round(self.K[1, 1] * cam[front, 1] / z[front] + self.K[1, 2])
-            inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-            seen = np.zeros(len(z))
-            seen[inside] = depth[v[inside], u[inside]]
-            beyond = (seen > 0) & (seen - z > margin)
-            gap[beyond] = np.maximum(gap[beyond], seen[beyond] - z[beyond])
+            front = np.flatnonzero(cam[:, 2] > 1e-3)
+            pix, inside = nearest_pixels(self.K, cam[front], h, w)
+            front = front[inside]
+            beyond = self.depths[k].reshape(-1)[pix[inside]] - cam[front, 2]  # no depth (0): negative
+            seen = beyond > margin
+            gap[front[seen]] = np.maximum(gap[front[seen]], beyond[seen])
         return np.where(np.isfinite(out), gap.reshape(out.shape), np.nan)

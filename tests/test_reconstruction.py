@@ -646,10 +646,12 @@ def test_the_edge_term_widens_sigma_by_a_share_of_the_local_depth_step():
 
 
 def test_the_through_term_puts_the_surface_a_view_saw_beyond_the_point_at_the_99_7_percent_interval():
+    from scipy import stats
+
     law = DepthErrorLaw(2.0, 0.01, 3.0)
     spread, z, gap = np.full(3, 0.01), np.full(3, 2.0), np.array([0.0, 0.5, 1.0])
     seen = law.sigma(spread, z)
-    k = law.interval(0.9973002039367398)
+    k = stats.t(3).ppf((1 + 0.9973002039367398) / 2) / stats.t(3).ppf((1 + 0.6826894921370859) / 2)
     assert k > 3  # 3 degrees of freedom: wider than a Gaussian's 3 sigma
     np.testing.assert_allclose(law.sigma(spread, z, None, None, gap), np.hypot(seen, gap / k))
     alone = DepthErrorLaw(1.0, 0.0, np.inf).sigma(np.zeros(3), z, None, None, gap)
