@@ -16,7 +16,7 @@ through term with the other two at their defaults: how far beyond the rendered p
 view's depth saw, by more than `margin` (ObservedSurface.seen_through), over the 99.73% interval's
 multiple, times `through`, added to sigma. `--dataset 7scenes` checks the choices elsewhere.
 
-    python benchmarks/bench_unseen.py [--dataset tum] [--name unseen]
+    python benchmarks/bench_unseen.py [--dataset tum] [--name unseen] [--markdown-only]
 
 Writes benchmarks/results/<name>.json and .md.
 """
@@ -98,9 +98,15 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset", default="tum")
     ap.add_argument("--name", default="unseen")
+    ap.add_argument("--markdown-only", action="store_true",
+                    help="no run: write results/<name>.md again from results/<name>.json")
     args = ap.parse_args()
+    if args.markdown_only:
+        write_markdown(json.loads((OUT / f"{args.name}.json").read_text()), args.name)
+        return
     data, law = collect(args.dataset)
-    grid = [{"unseen": u, "unseen_ramp": r, **score(data, law, u, r)} for u in UNSEEN for r in (RAMPS if u else RAMPS[:1])]
+    grid = [{"unseen": u, "unseen_ramp": r, **score(data, law, u, r)}
+            for u in UNSEEN for r in (RAMPS if u else RAMPS[:1])]
     edge_grid = [{"edge": e, "radius_px": r, **score(data, law, law.unseen, law.unseen_ramp, e, r, law.through,
                                                      SEEN_THROUGH_MARGIN)}
                  for e in EDGES for r in (RADII if e else RADII[:1])]
@@ -112,43 +118,59 @@ def main():
     quantiles = {name: {"distance_mm": [1000 * float(q) for q in np.quantile(d["distance"], [0.5, 0.9])],
                         "error_mm": [1000 * float(q) for q in np.quantile(d["err"], [0.5, 0.9])]}
                  for name, d in data.items()}
+    terms = {k: getattr(law, k) for k in ("unseen", "unseen_ramp", "edge", "through")}
     result = {"meta": {"dataset": args.dataset, "machine": machine(), "law": {"scale": law.scale, "floor": law.floor,
-                                                                             "dof": law.dof}},
+                                                                             "dof": law.dof, **terms}},
               "pixels": sizes, "quantiles": quantiles, "grid": grid, "edge_grid": edge_grid,
               "through_grid": through_grid}
     (OUT / f"{args.name}.json").write_text(json.dumps(result, indent=1))
-    lines = [f"{args.dataset}, `fast` preset, GT poses, seed 0, held-out frames; {machine()}. Pixels only the model "
-             f"covers: {sizes['only']} (distance to the observed surfaces median / 90%: "
-             f"{quantiles['only']['distance_mm'][0]:.0f} / {quantiles['only']['distance_mm'][1]:.0f} mm; error "
-             f"{quantiles['only']['error_mm'][0]:.0f} / {quantiles['only']['error_mm'][1]:.0f} mm); both cover: "
-             f"{sizes['common']} (distance {quantiles['common']['distance_mm'][0]:.0f} / "
-             f"{quantiles['common']['distance_mm'][1]:.0f} mm).", "",
-             "| unseen | ramp (mm) | only: within 99.7% | only: NLL | only: median sigma (mm) | common: within 99.7% | "
-             "common: NLL | common: median sigma (mm) |", "|" + " --- |" * 8]
-    for g in grid:
-        o, c = g["only"], g["common"]
-        lines.append(f"| {g['unseen']:g} | {1000 * g['unseen_ramp']:g} | {o['within_3']:.4f} | {o['nll']:.2f} | "
-                     f"{o['median_sigma_mm']:.0f} | {c['within_3']:.4f} | {c['nll']:.3f} | {c['median_sigma_mm']:.1f} |")
-    lines += ["", f"The edge term, with the unseen term at its default ({law.unseen:g}, {1000 * law.unseen_ramp:g} mm) "
-              f"and the through term at its ({law.through:g}, {SEEN_THROUGH_MARGIN:g} m); radius in pixels of a "
-              "320-pixel-wide image:", "",
-              "| edge | radius (px) | only: within 68.3% | only: within 99.7% | only: NLL | common: within 68.3% | "
-              "common: within 99.7% | common: NLL | common: median sigma (mm) |", "|" + " --- |" * 9]
-    for g in edge_grid:
-        o, c = g["only"], g["common"]
-        lines.append(f"| {g['edge']:g} | {g['radius_px']} | {o['within_1']:.3f} | {o['within_3']:.4f} | {o['nll']:.2f} | "
-                     f"{c['within_1']:.3f} | {c['within_3']:.4f} | {c['nll']:.3f} | {c['median_sigma_mm']:.1f} |")
-    lines += ["", f"The through term, with the unseen and edge terms at their defaults ({law.unseen:g}, "
-              f"{1000 * law.unseen_ramp:g} mm; {law.edge:g}, {radius} px); flagged: the share of pixels a training "
-              "view saw through by more than the margin:", "",
-              "| margin (m) | through | only: flagged | only: within 68.3% | only: within 99.7% | only: NLL | "
-              "common: flagged | common: within 68.3% | common: within 99.7% | common: NLL |", "|" + " --- |" * 10]
-    for g in through_grid:
-        o, c, f = g["only"], g["common"], g["flagged"]
-        lines.append(f"| {g['margin']:g} | {g['through']:g} | {f['only']:.3f} | {o['within_1']:.3f} | "
-                     f"{o['within_3']:.4f} | {o['nll']:.3f} | {f['common']:.3f} | {c['within_1']:.3f} | "
-                     f"{c['within_3']:.4f} | {c['nll']:.3f} |")
-    (OUT / f"{args.name}.md").write_text("\n".join(lines) + "\n")
+    write_markdown(result, args.name)
+
+
+def table(header: list[str], rows: list[list[str]]) -> list[str]:
+    """Markdown table lines."""
+    return ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)] + [
+        "| " + " | ".join(r) + " |" for r in rows]
+
+
+def write_markdown(result: dict, name: str) -> None:
+    """results/<name>.md from a result dict (as saved in results/<name>.json)."""
+    from open3d_pnerf.error_law import EDGE, THROUGH, UNSEEN, UNSEEN_RAMP
+
+    meta, sizes, q = result["meta"], result["pixels"], result["quantiles"]
+    terms = {"unseen": UNSEEN, "unseen_ramp": UNSEEN_RAMP, "edge": EDGE, "through": THROUGH,
+             **meta["law"]}  # files written before the terms were saved: the defaults they were run with
+    radius = round(EDGE_RADIUS * 320)
+    lines = [f"{meta['dataset']}, `fast` preset, GT poses, seed 0, held-out frames; {meta['machine']}. Pixels only the "
+             f"model covers: {sizes['only']} (distance to the observed surfaces median / 90%: "
+             f"{q['only']['distance_mm'][0]:.0f} / {q['only']['distance_mm'][1]:.0f} mm; error "
+             f"{q['only']['error_mm'][0]:.0f} / {q['only']['error_mm'][1]:.0f} mm); both cover: "
+             f"{sizes['common']} (distance {q['common']['distance_mm'][0]:.0f} / "
+             f"{q['common']['distance_mm'][1]:.0f} mm).", ""]
+    lines += table(["unseen", "ramp (mm)", "only: within 99.7%", "only: NLL", "only: median sigma (mm)",
+                    "common: within 99.7%", "common: NLL", "common: median sigma (mm)"],
+                   [[f"{g['unseen']:g}", f"{1000 * g['unseen_ramp']:g}", f"{o['within_3']:.4f}", f"{o['nll']:.2f}",
+                     f"{o['median_sigma_mm']:.0f}", f"{c['within_3']:.4f}", f"{c['nll']:.3f}",
+                     f"{c['median_sigma_mm']:.1f}"] for g in result["grid"] for o, c in [(g["only"], g["common"])]])
+    lines += ["", f"The edge term, with the unseen term at its default ({terms['unseen']:g}, "
+              f"{1000 * terms['unseen_ramp']:g} mm) and the through term at its ({terms['through']:g}, "
+              f"{SEEN_THROUGH_MARGIN:g} m); radius in pixels of a 320-pixel-wide image:", ""]
+    lines += table(["edge", "radius (px)", "only: within 68.3%", "only: within 99.7%", "only: NLL",
+                    "common: within 68.3%", "common: within 99.7%", "common: NLL", "common: median sigma (mm)"],
+                   [[f"{g['edge']:g}", f"{g['radius_px']}", f"{o['within_1']:.3f}", f"{o['within_3']:.4f}",
+                     f"{o['nll']:.2f}", f"{c['within_1']:.3f}", f"{c['within_3']:.4f}", f"{c['nll']:.3f}",
+                     f"{c['median_sigma_mm']:.1f}"]
+                    for g in result["edge_grid"] for o, c in [(g["only"], g["common"])]])
+    lines += ["", f"The through term, with the unseen and edge terms at their defaults ({terms['unseen']:g}, "
+              f"{1000 * terms['unseen_ramp']:g} mm; {terms['edge']:g}, {radius} px); flagged: the share of pixels a "
+              "training view saw through by more than the margin:", ""]
+    lines += table(["margin (m)", "through", "only: flagged", "only: within 68.3%", "only: within 99.7%", "only: NLL",
+                    "common: flagged", "common: within 68.3%", "common: within 99.7%", "common: NLL"],
+                   [[f"{g['margin']:g}", f"{g['through']:g}", f"{g['flagged']['only']:.3f}", f"{o['within_1']:.3f}",
+                     f"{o['within_3']:.4f}", f"{o['nll']:.3f}", f"{g['flagged']['common']:.3f}", f"{c['within_1']:.3f}",
+                     f"{c['within_3']:.4f}", f"{c['nll']:.3f}"]
+                    for g in result["through_grid"] for o, c in [(g["only"], g["common"])]])
+    (OUT / f"{name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
