@@ -54,6 +54,7 @@ COLUMNS = [  # label, key, factor, format
     ("depth L1 model only (mm)", "depth_l1_only", 1000, ".1f"), ("model-only share", "only_share", 1, ".3f"),
     ("99.7% interval holds (model only)", "within_3_only", 1, ".3f"),
     ("PSNR (dB)", "psnr", 1, ".2f"), ("PSNR common (dB)", "psnr_common", 1, ".2f"),
+    ("PSNR beside depth edges (dB)", "psnr_edges", 1, ".2f"), ("PSNR away from edges (dB)", "psnr_flat", 1, ".2f"),
     ("depth L1 (mm)", "depth_l1", 1000, ".1f"), ("in 68.3%", "within_1", 1, ".3f"), ("in 95.4%", "within_2", 1, ".3f"),
     ("in 99.7%", "within_3", 1, ".3f"), ("NLL", "nll", 1, ".2f"),
     ("AUCE", "auce", 1, ".3f"), ("AUSE RMSE", "ause_rmse", 1, ".3f"), ("AUSE MAE", "ause_mae", 1, ".3f"),

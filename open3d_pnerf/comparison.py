@@ -39,7 +39,9 @@ SENSOR_BASED = ("sensor", "tsdf")  # "only" pixels: covered by the model (or its
 REFERENCE_ROWS = ("tsdf_default",)  # shown, but not part of the common pixels
 ROWS = [  # label, key, factor, format
     ("PSNR, whole frame (dB)", "psnr", 1, ".2f"), ("PSNR on common pixels (dB)", "psnr_common", 1, ".2f"),
-    ("PSNR on its own hits (dB)", "psnr_hits", 1, ".2f"), ("SSIM, whole frame", "ssim", 1, ".3f"),
+    ("PSNR on its own hits (dB)", "psnr_hits", 1, ".2f"),
+    ("PSNR beside depth edges, whole frame (dB)", "psnr_edges", 1, ".2f"),
+    ("PSNR away from depth edges, whole frame (dB)", "psnr_flat", 1, ".2f"), ("SSIM, whole frame", "ssim", 1, ".3f"),
     ("depth L1 on common pixels (mm)", "depth_l1_common", 1000, ".1f"),
     ("depth L1 on common pixels beside a depth edge (mm)", "depth_l1_common_edges", 1000, ".1f"),
     ("depth L1 on common pixels away from depth edges (mm)", "depth_l1_common_flat", 1000, ".1f"),

@@ -239,7 +239,8 @@ def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, 
     cover, the share beside a depth edge of the held-out depth: :func:`held_out_edges`) and
     edge_share (that share of all pixels with sensor depth: holes_at_edges if holes fell anywhere),
     depth_l1_common_edges and depth_l1_common_flat (depth L1 on the common pixels beside a depth
-    edge and away from every one);
+    edge and away from every one), psnr_edges and psnr_flat (the same split of the whole frame's
+    colour, pooled over the frames' pixels, a pixel without sensor depth counting as an edge);
     the model's depth calibration under its error law (`dof` degrees of freedom): within_1..3 and
     nll over every pixel with sensor depth, within_3_only over its "only" pixels. Without sensor
     depth (image-only sequences): colour only."""
@@ -258,7 +259,7 @@ def score_views(views, min_opacity: float, dof: float = np.inf, common_of=None, 
         by_sensor = np.logical_or.reduce([covers[n] for n in sensor_based]) if sensor_based else ~every
         for name in names:
             o, pool, main = out[name], pools[name], name in common_of
-            pool.color(o["color"], color, {"_hits": covers[name], **({"_common": common} if main else {})})
+            pool.color(o["color"], color, {"_hits": covers[name], **({"_common": common} if main else {})}, edges)
             if not with_depth:
                 continue
             sets = {"": every if name == "model" else covers[name], "_hits": covers[name]}
@@ -298,12 +299,15 @@ class _Pool:
         total[0] += float(values.sum())
         total[1] += int(values.size)
 
-    def color(self, pred, gt, sets: dict) -> None:
+    def color(self, pred, gt, sets: dict, edges=None) -> None:
         err = ((np.asarray(pred, np.float64) - gt) ** 2).mean(-1)
         self.frames["psnr"].append(mse_to_psnr(err.mean()))
         self.frames["ssim"].append(ssim(pred, gt))
         for suffix, mask in sets.items():
             self.add(f"psnr{suffix}", err[mask])
+        if edges is not None:  # where in the frame colour is lost
+            for part, where in (("edges", edges), ("flat", ~edges)):
+                self.add(f"psnr_{part}", err[where])
 
     def depth(self, pred, gt, sensor, sets: dict, edges) -> None:
         self.add("holes_at_edges", edges[sensor & ~sets["_hits"]])

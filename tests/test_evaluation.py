@@ -283,16 +283,23 @@ def test_score_views_pools_known_errors_over_frames():
     assert set(score_views([view_item(0, 0.1, 0.01, tsdf=False)], 0.9)) == {"model"}
 
 
-def test_score_views_splits_the_common_depth_error_at_depth_edges():
+def test_score_views_splits_the_common_pixels_at_depth_edges():
     """Row 1 lies beside row 0, which has no depth: the common pixels (the TSDF's left half) there
-    are beside an edge, rows 2-5 away from every one."""
+    are beside an edge, rows 2-5 away from every one. Row 0 itself (no depth) counts as beside
+    an edge for colour and is not scored for depth."""
     item = view_item(0, 0.1, 0.01)
     item["model"]["depth"][1] = item["depth"][1] + 0.2  # the model is 0.2 m off beside the edge only
+    item["model"]["color"][1] += 0.2  # and its colour 0.3 off there
     model, tsdf = (score_views([item], min_opacity=0.9)[n] for n in ("model", "tsdf"))
     assert model["depth_l1_common_edges"] == pytest.approx(0.2, abs=1e-6)
     assert model["depth_l1_common_flat"] == pytest.approx(0.01, abs=1e-6)
     assert model["depth_l1_common"] == pytest.approx((4 * 0.2 + 16 * 0.01) / 20, abs=1e-6)
     assert tsdf["depth_l1_common_edges"] == tsdf["depth_l1_common_flat"] == pytest.approx(0.03, abs=1e-6)
+    # colour over the whole frame: rows 0-1 beside an edge, rows 2-5 away; the TSDF's misses (right
+    # half) are 0.3 off
+    assert model["psnr_edges"] == pytest.approx(-10 * math.log10((8 * 0.1**2 + 8 * 0.3**2) / 16), abs=1e-4)
+    assert model["psnr_flat"] == pytest.approx(20.0, abs=1e-4)
+    assert tsdf["psnr_edges"] == tsdf["psnr_flat"] == pytest.approx(-10 * math.log10((0.1**2 + 0.3**2) / 2), abs=1e-4)
 
 
 def test_score_views_scores_common_own_and_model_only_pixels():
