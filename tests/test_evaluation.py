@@ -283,10 +283,10 @@ def test_score_views_pools_known_errors_over_frames():
     assert set(score_views([view_item(0, 0.1, 0.01, tsdf=False)], 0.9)) == {"model"}
 
 
-def test_score_views_splits_the_common_pixels_at_depth_edges():
-    """Row 1 lies beside row 0, which has no depth: the common pixels (the TSDF's left half) there
-    are beside an edge, rows 2-5 away from every one. Row 0 itself (no depth) counts as beside
-    an edge for colour and is not scored for depth."""
+def test_score_views_splits_errors_at_depth_edges():
+    """Row 1 lies beside row 0, which has no depth: the common depth pixels (the TSDF's left half)
+    there are beside an edge, rows 2-5 away from every one. Colour is split over the whole frame,
+    where row 0 itself (no depth) counts as beside an edge."""
     item = view_item(0, 0.1, 0.01)
     item["model"]["depth"][1] = item["depth"][1] + 0.2  # the model is 0.2 m off beside the edge only
     item["model"]["color"][1] += 0.2  # and its colour 0.3 off there
