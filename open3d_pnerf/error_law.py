@@ -23,7 +23,7 @@ edge: benchmarks/bench_unseen.py). The through term is what the training views c
 rendered point that a view saw past lies where that view saw free space (a foreground surface
 rendered wider than it is), and the surface the view saw behind it may be the answer, so the
 99.73% interval reaches it (on 7-Scenes' held-out frames the misses where only the model covers
-are such points, 0.9 m off at the median: benchmarks/README.md). The terms are fixed, not
+were such points: benchmarks/README.md). The terms are fixed, not
 fitted: the training pixels the law is fitted on are rendered alone, and the model has learned
 those frames' edges and free space.
 """

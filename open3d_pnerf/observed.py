@@ -18,6 +18,7 @@ import dataclasses
 import functools
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from .camera import backproject, nearest_pixels
@@ -101,15 +102,13 @@ class ObservedSurface:
         (N, H, W) bool, K (3, 3), poses (N, 4, 4) camera-to-world; points outside the box aabb
         (2, 3) (stray far returns), or more than 2^20 voxels from the origin, are left out. The
         views are kept for :meth:`seen_through`."""
-        from scipy import ndimage
-
         nearest = np.zeros(np.shape(depths), np.float16)  # the nearest surface around each pixel: 0 where none
-        for k, (depth, mask) in enumerate(zip(depths, valid)):
-            around = ndimage.minimum_filter(np.where(mask & (depth > 0), depth, np.inf), 3, mode="nearest")
-            nearest[k] = np.where(np.isfinite(around), around, 0)
         keys = []
-        for depth, mask, pose in zip(depths, valid, poses):
-            pts = backproject(depth, K, pose, mask & (depth > 0))[0]
+        for k, (depth, mask, pose) in enumerate(zip(depths, valid, poses)):  # each map read once
+            seen = mask & (depth > 0)
+            around = ndimage.minimum_filter(np.where(seen, depth, np.inf), 3, mode="nearest")
+            nearest[k] = np.where(np.isfinite(around), around, 0)
+            pts = backproject(depth, K, pose, seen)[0]
             if aabb is not None:
                 pts = pts[((pts >= aabb[0]) & (pts <= aabb[1])).all(1)]
             keys.append(_distinct(_packed(np.floor(pts / voxel_size))))
