@@ -2,7 +2,8 @@
 methods built from them, and the objective's settings (LossWeights, ObjectiveConfig).
 
 PNeRF: L = Kc L_color + Kd L_depth_pdf + Kz L_depth, each an L1 over the fine render (and the
-coarse one with ObjectiveConfig.coarse_terms, as the paper; the paper's L_density is the depth-PDF term):
+coarse one with ObjectiveConfig.coarse_terms, as the paper; the paper's L_density is the depth-PDF term;
+ObjectiveConfig.coarse_color scores the coarse render's colour alone):
   L_color     = |C - C*|_1
   L_depth_pdf = sum_k |p_k - q_k|, p_k = w_k / (sum w + eps) the model's depth mass in bin k,
                 q_k the target Gaussian N(mu, sigma^2)'s mass in the same bin, renormalised
@@ -76,6 +77,12 @@ class ObjectiveConfig(Settings):
     the target's bin: fog in front of every surface, which puts the rendered median in front of
     the depth (benchmarks/README.md: where the constants come from). The forward_facing preset
     keeps them: its Fern figures were measured with them."""
+    coarse_color: bool = setting(False, FLAG)
+    """Score the coarse render's colour alone besides the fine render's terms (its depth terms
+    stay off unless coarse_terms): the field learns to show each surface's colour at the coarse
+    samples that place the fine ones. Off: on dense TUM fr1/xyz, the scene the coarse terms were
+    chosen on, it cost held-out colour and depth (benchmarks/README.md: where the constants come
+    from); measured with sparse views there too."""
     pose_prior_weight: float = setting(1e-3, number(0))
     """Weight of the pose prior (mean over frames of 0.5 xi^T Sigma^-1 xi), with refine_poses."""
 
@@ -200,7 +207,8 @@ def loss_method(method: str | LossMethod) -> LossMethod:
 
 
 def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights: LossWeights = LossWeights(),
-               n_rays: int | None = None, n_target: int | None = None, target_weight=None) -> dict:
+               n_rays: int | None = None, n_target: int | None = None, target_weight=None,
+               depth_renders: int | None = None) -> dict:
     """Loss terms and their weighted sum over renders (e.g. [fine, coarse]).
 
     method: a name in LOSSES or a LossMethod. mu, sigma (R,): ray-distance targets, NaN
@@ -211,6 +219,8 @@ def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights
     batch, so the shares' losses (and gradients) add up to the whole batch's.
     target_weight (R,): each target's weight in the depth terms (e.g. DS-NeRF's reprojection
     weight of an SfM point; None = 1): a term is sum_r w_r term_r / n_target.
+    depth_renders: the depth terms (and the distortion) score only the first this many renders
+    (None: all); the others add their colour term alone.
     """
     method = loss_method(method)
     has = torch.isfinite(mu)
@@ -219,8 +229,10 @@ def total_loss(method: str | LossMethod, renders, target_rgb, mu, sigma, weights
     mu_v, sigma_v = mu[has], sigma[has]
     w_v = None if target_weight is None else target_weight[has]
     terms = dict.fromkeys(TERMS, 0.0)
-    for r in renders:
+    for i, r in enumerate(renders):
         terms["color"] = terms["color"] + color_l1(r.color, target_rgb) * share
+        if depth_renders is not None and i >= depth_renders:
+            continue
         if weights.distortion > 0:
             terms["distortion"] = terms["distortion"] + distortion(r.weights, r.edges).mean() * share
         if r.proposal_weights is not None:

@@ -31,7 +31,8 @@ it to the pixel (at most 0.004 in all with 40 samples); densities, depth and opa
 class PNeRFModel(nn.Module):
     """field: a scene field; sampling: samples per ray; loss: a name in LOSSES or a LossMethod;
     coarse_terms: the loss also scores the coarse render (the paper's coarse + fine terms;
-    ObjectiveConfig.coarse_terms).
+    ObjectiveConfig.coarse_terms); coarse_color: it scores the coarse render's colour alone
+    (ObjectiveConfig.coarse_color).
 
     For training, give the training cameras: poses (N, 4, 4) camera-to-world and K (3, 3),
     and optionally exposure (an ExposureGains of the N frames) and pose_corrections (a
@@ -41,14 +42,16 @@ class PNeRFModel(nn.Module):
     """
 
     def __init__(self, field: nn.Module, sampling: SamplingConfig, loss: str | LossMethod = "pnerf", *,
-                 coarse_terms: bool = False, poses: torch.Tensor | None = None, K: torch.Tensor | None = None,
-                 exposure: ExposureGains | None = None, pose_corrections: PoseCorrections | None = None,
-                 pose_prior_weight: float = 0.0, depth_range: torch.Tensor | None = None):
+                 coarse_terms: bool = False, coarse_color: bool = False, poses: torch.Tensor | None = None,
+                 K: torch.Tensor | None = None, exposure: ExposureGains | None = None,
+                 pose_corrections: PoseCorrections | None = None, pose_prior_weight: float = 0.0,
+                 depth_range: torch.Tensor | None = None):
         super().__init__()
         self.field = field
         self.sampling = sampling
         self.loss_method = loss_method(loss)
         self.coarse_terms = coarse_terms
+        self.coarse_color = coarse_color
         self.exposure = exposure
         self.pose_corrections = pose_corrections
         self.pose_prior_weight = pose_prior_weight
@@ -78,7 +81,8 @@ class PNeRFModel(nn.Module):
         with record_function("pnerf.rays"):
             rays = self.rays(batch)
         fine, coarse = render_rays(self.field, rays, self.sampling, batch.mean if guide else None,
-                                   batch.sigma if guide else None, generator, with_coarse=self.coarse_terms)
+                                   batch.sigma if guide else None, generator,
+                                   with_coarse=self.coarse_terms or self.coarse_color)
         renders = [fine] + ([coarse] if coarse is not None else [])
         if self.exposure is not None:  # the colours as each ray's frame recorded them
             renders = [dataclasses.replace(r, color=self.exposure(r.color, batch.frames)) for r in renders]
@@ -92,7 +96,7 @@ class PNeRFModel(nn.Module):
         :func:`~open3d_pnerf.fields.sdf.depth_sdf_loss`: they move the field, not the poses), and the
         pose prior when poses are refined. n_rays, n_target: the whole batch's counts when `batch` is one rank's share."""
         terms = total_loss(self.loss_method, renders, batch.rgb, batch.mean, batch.sigma, weights, n_rays, n_target,
-                           batch.weight)
+                           batch.weight, depth_renders=None if self.coarse_terms else 1)
         share = 1.0 if n_rays is None else len(batch) / n_rays  # this rank's part of the batch
         sdf = getattr(self.field, "sdf", None)
         if sdf is not None:
@@ -196,6 +200,7 @@ def build_model(config, aabb, poses: np.ndarray | None = None, K: np.ndarray | N
         if config.exposure_compensation:
             exposure = ExposureGains(len(poses), device)
     objective = config.objective
-    return PNeRFModel(field, config.sampling, config.loss, coarse_terms=objective.coarse_terms, exposure=exposure,
+    return PNeRFModel(field, config.sampling, config.loss, coarse_terms=objective.coarse_terms,
+                      coarse_color=objective.coarse_color, exposure=exposure,
                       pose_corrections=corrections, pose_prior_weight=objective.pose_prior_weight,
                       depth_range=depth_range, **cameras)

@@ -284,6 +284,23 @@ def test_total_loss_combines_terms_with_the_gains(two_ray_batch):
     torch.testing.assert_close(both["loss"], 2 * out["loss"])
 
 
+def test_total_loss_scores_only_the_colour_of_renders_past_depth_renders(two_ray_batch):
+    """objective.coarse_color: the coarse render adds its colour term, the depth terms and the
+    distortion score the fine render alone."""
+    edges, t, w, color, target = two_ray_batch
+    fine = make_render(w, edges, color)
+    coarse = make_render(0.5 * torch.flip(w, [1]), edges, torch.rand(3, 3, generator=torch.Generator().manual_seed(9)))
+    mu, sigma = torch.tensor([1.5, 2.0, 2.5]), torch.tensor([0.1, 0.2, 0.05])
+    gains = LossWeights(color=2.0, depth_pdf=0.5, depth=3.0, distortion=0.2)
+    alone = total_loss("pnerf", [fine], target, mu, sigma, gains)
+    out = total_loss("pnerf", [fine, coarse], target, mu, sigma, gains, depth_renders=1)
+    for name in ("depth_pdf", "depth", "distortion"):
+        torch.testing.assert_close(out[name], alone[name])
+    torch.testing.assert_close(out["color"], color_l1(color, target) + color_l1(coarse.color, target))
+    torch.testing.assert_close(out["loss"], alone["loss"] + 2.0 * color_l1(coarse.color, target))
+    assert total_loss("pnerf", [fine, coarse], target, mu, sigma, gains)["depth"].item() > alone["depth"].item()
+
+
 def test_total_loss_rays_without_target_contribute_only_colour(two_ray_batch):
     edges, t, w, color, target = two_ray_batch
     mu = torch.tensor([1.5, float("nan"), 2.5])

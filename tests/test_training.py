@@ -563,3 +563,21 @@ def test_coarse_to_fine_turns_the_levels_on_over_its_share_of_training_and_all_a
     assert trainer.model.field.levels_on is None  # saved and rendered with every level
     with pytest.raises(ConfigError, match="optimizer.coarse_to_fine=0.5 needs a grid field"):
         config(field="vanilla", **{"optimizer.coarse_to_fine": 0.5})
+
+
+def test_coarse_color_scores_the_coarse_renders_colour_and_not_its_depth(scene):
+    """objective.coarse_color: the model renders the coarse pass too; the loss adds its colour term
+    and keeps the depth terms of the fine render alone (objective.coarse_terms: of both)."""
+    seq, targets, _ = scene
+    batch = RayBatcher(seq, targets, "cpu", seed=0).sample(256, torch.Generator().manual_seed(0))
+    losses = {}
+    for name, overrides in (("fine", {}), ("coarse colour", {"objective.coarse_color": True}),
+                            ("coarse terms", {"objective.coarse_terms": True})):
+        model = make_model(scene, config(**overrides))
+        renders = model(batch, torch.Generator().manual_seed(1))
+        assert len(renders) == (1 if name == "fine" else 2)
+        losses[name] = model.loss(renders, batch, LossWeights())
+    for term in ("depth_pdf", "depth"):
+        torch.testing.assert_close(losses["coarse colour"][term], losses["fine"][term])
+        assert losses["coarse terms"][term].item() > losses["fine"][term].item()
+    assert losses["coarse colour"]["color"].item() > losses["fine"]["color"].item()
