@@ -14,7 +14,7 @@ coverage lower by more than 0.01, fails the run (exit status 1) and says which; 
 whether the held-out PSNR reaches --target dB.
 Needs no shared data; about 4 minutes a run on 2 cores.
 
-    python benchmarks/bench_demo.py [--runs 1] [--tolerance 1.0] [--target 25] [--name demo]
+    python benchmarks/bench_demo.py [--runs 1] [--tolerance 1.0] [--target 25] [--name demo] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -42,13 +42,15 @@ KEYS = {  # report key: (method, metric)
 }
 
 
-def run_demo(out: Path) -> dict:
-    """One `open3d-pnerf demo` into `out`; its numbers (KEYS, ATE, training, wall time)."""
+def run_demo(out: Path, settings: list[str] = ()) -> dict:
+    """One `open3d-pnerf demo` into `out` (settings: its --set KEY=VALUE options); its numbers
+    (KEYS, ATE, training, wall time)."""
     exe = shutil.which("open3d-pnerf", path=str(Path(sys.executable).parent))
     if exe is None:
         sys.exit("open3d-pnerf is not installed in this Python's environment (make install)")
     t0 = time.perf_counter()
-    subprocess.run([exe, "demo", "--out", str(out)], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([exe, "demo", "--out", str(out), *(f"--set={kv}" for kv in settings)], check=True,
+                   stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
     report = json.loads((out / "report.json").read_text())
     scores = report["scores"]
@@ -127,7 +129,9 @@ def markdown(result: dict) -> str:
             ("errors within the 99.7% interval there", "within_3_only", 1, ".3f"),
             ("tracking ATE RMSE (mm)", "ate_rmse_m", 1000, ".1f"), ("training (s)", "train_s", 1, ".0f"),
             ("training steps", "steps", 1, ".0f"), ("demo wall time (s)", "wall_s", 1, ".0f")]
-    lines = [f"`open3d-pnerf demo` (bundled TUM sample, tracked poses, `fast` preset), {len(runs)} run(s) at commit "
+    settings = "".join(f" --set {kv}" for kv in meta.get("settings", []))
+    lines = [f"`open3d-pnerf demo{settings}` (bundled TUM sample, tracked poses, `fast` preset), {len(runs)} run(s) at "
+             f"commit "
              f"{meta['commit']}; {meta['machine']}.", "", "| | " + " | ".join(f"run {i + 1}" for i in range(len(runs)))
              + " |", "|" + " --- |" * (len(runs) + 1)]
     frames = sorted(int(k.rsplit("_", 1)[1]) for k in runs[0] if k.startswith("psnr_frame_"))
@@ -150,18 +154,20 @@ def main():
     ap.add_argument("--tolerance", type=float, default=1.0, help="allowed held-out PSNR drop (dB)")
     ap.add_argument("--target", type=float, default=25.0, help="held-out PSNR the demo should reach (dB)")
     ap.add_argument("--name", default="demo")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config setting passed to the demo (repeatable), e.g. objective.coarse_color=true")
     args = ap.parse_args()
     path = OUT / f"{args.name}.json"
     before = json.loads(path.read_text()) if path.is_file() else None
     runs = []
     for i in range(args.runs):
         with tempfile.TemporaryDirectory() as tmp:
-            runs.append(run_demo(Path(tmp) / "demo"))
+            runs.append(run_demo(Path(tmp) / "demo", args.set))
         print(f"run {i + 1}: " + ", ".join(f"{k} {v:.4g}" for k, v in runs[-1].items() if v is not None), flush=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(__file__).parent).stdout.strip()
-    result = {"meta": {"commit": commit, "machine": machine(), "target": args.target}, "runs": runs,
-              "regressions": regressions(runs, before, args.tolerance)}
+    meta = {"commit": commit, "machine": machine(), "target": args.target, "settings": args.set}
+    result = {"meta": meta, "runs": runs, "regressions": regressions(runs, before, args.tolerance)}
     path.write_text(json.dumps(result, indent=1))
     (OUT / f"{args.name}.md").write_text(markdown(result))
     print(markdown(result))
