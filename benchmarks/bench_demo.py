@@ -12,7 +12,7 @@ PSNR on the pixels some training view saw. Writes results/<name>.json and .md. A
 file it replaces (the committed one), a held-out PSNR lower by more than --tolerance dB, or a
 coverage lower by more than 0.01, fails the run (exit status 1) and says which; the .md says
 whether the held-out PSNR reaches --target dB.
-Needs no shared data; about 4 minutes a run on 2 cores.
+Needs no shared data; about 1-2 minutes a run on 2 cores.
 
     python benchmarks/bench_demo.py [--runs 1] [--tolerance 1.0] [--target 25] [--name demo] [--set KEY=VALUE ...]
 """
@@ -42,7 +42,7 @@ KEYS = {  # report key: (method, metric)
 }
 
 
-def run_demo(out: Path, settings: list[str] = ()) -> dict:
+def run_demo(out: Path, settings=()) -> dict:
     """One `open3d-pnerf demo` into `out` (settings: its --set KEY=VALUE options); its numbers
     (KEYS, ATE, training, wall time)."""
     exe = shutil.which("open3d-pnerf", path=str(Path(sys.executable).parent))
@@ -131,8 +131,7 @@ def markdown(result: dict) -> str:
             ("training steps", "steps", 1, ".0f"), ("demo wall time (s)", "wall_s", 1, ".0f")]
     settings = "".join(f" --set {kv}" for kv in meta.get("settings", []))
     lines = [f"`open3d-pnerf demo{settings}` (bundled TUM sample, tracked poses, `fast` preset), {len(runs)} run(s) at "
-             f"commit "
-             f"{meta['commit']}; {meta['machine']}.", "", "| | " + " | ".join(f"run {i + 1}" for i in range(len(runs)))
+             f"commit {meta['commit']}; {meta['machine']}.", "", "| | " + " | ".join(f"run {i + 1}" for i in range(len(runs)))
              + " |", "|" + " --- |" * (len(runs) + 1)]
     frames = sorted(int(k.rsplit("_", 1)[1]) for k in runs[0] if k.startswith("psnr_frame_"))
     rows[1:1] = [(f"  frame {i}: PSNR (dB) / share of its pixels inside a training view / PSNR on the others (dB)",
