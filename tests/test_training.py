@@ -523,7 +523,7 @@ def test_every_depth_weight_decays_to_the_final_factor_and_colour_stays(scene, m
         np.testing.assert_allclose([g.depth_pdf, g.depth, g.dsnerf], np.array([0.5, 0.4, 0.2]) * factor, rtol=1e-12)
     seen = []
     real = model_module.total_loss
-    monkeypatch.setattr(model_module, "total_loss", lambda *a: seen.append(a[5]) or real(*a))
+    monkeypatch.setattr(model_module, "total_loss", lambda *a, **kw: seen.append(a[5]) or real(*a, **kw))
     trainer.step = 100
     trainer.train_step()
     assert seen[-1].depth == pytest.approx(0.04)  # the step uses the decayed gains
