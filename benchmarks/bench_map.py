@@ -6,7 +6,8 @@ Per dataset, loss and seed (the `fast` preset, ground-truth poses, every 4th fra
 sensor's depth fused with the model's), the sensor alone (the same export without the model),
 Open3D's TSDF at the exported mesh's threshold and at its default one; on the held-out frames,
 depth and colour on the pixels every method covers, on each method's own hits and where only the
-model covers (with the share of the errors inside its 99.7% interval there); accuracy,
+model covers (with the share of the errors inside its 99.7% interval there), and the field's PSNR on
+8 of its training frames (how well it fits what it trained on); accuracy,
 completeness and F-scores against the exact surface (synthetic room only). Beside them the
 model-only mesh (the export without the sensor: the neural surface's own geometry).
 With --ensemble K, beside each pnerf run the ensemble baseline of predictive uncertainty (K seeds, the
@@ -53,7 +54,8 @@ COLUMNS = [  # label, key, factor, format
     ("holes at depth edges", "holes_at_edges", 1, ".3f"), ("sensor pixels at depth edges", "edge_share", 1, ".3f"),
     ("depth L1 model only (mm)", "depth_l1_only", 1000, ".1f"), ("model-only share", "only_share", 1, ".3f"),
     ("99.7% interval holds (model only)", "within_3_only", 1, ".3f"),
-    ("PSNR (dB)", "psnr", 1, ".2f"), ("PSNR common (dB)", "psnr_common", 1, ".2f"),
+    ("PSNR (dB)", "psnr", 1, ".2f"), ("PSNR training frames (dB)", "psnr_train", 1, ".2f"),
+    ("PSNR common (dB)", "psnr_common", 1, ".2f"),
     ("PSNR beside depth edges (dB)", "psnr_edges", 1, ".2f"), ("PSNR away from edges (dB)", "psnr_flat", 1, ".2f"),
     ("depth L1 (mm)", "depth_l1", 1000, ".1f"), ("in 68.3%", "within_1", 1, ".3f"), ("in 95.4%", "within_2", 1, ".3f"),
     ("in 99.7%", "within_3", 1, ".3f"), ("NLL", "nll", 1, ".2f"),
@@ -69,7 +71,8 @@ def run_one(spec: dict) -> dict:
     torch.set_num_threads(spec["threads"])
     import open3d_pnerf as pn
     from open3d_pnerf import compare_with_tsdf
-    from open3d_pnerf.evaluation import exact_sigma_coverage, geometry_metrics, heldout_views, score_views
+    from open3d_pnerf.evaluation import (exact_sigma_coverage, geometry_metrics, heldout_views, score_views,
+                                         training_psnr)
     from open3d_pnerf.export import export_geometry
 
     seq, reference = load(spec["source"], Path(spec["cache"]))
@@ -81,6 +84,7 @@ def run_one(spec: dict) -> dict:
     comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
     compare_s = time.perf_counter() - t0
     table = comparison.table
+    table["model"]["psnr_train"] = round(training_psnr(recon, seq), 5)  # beside held-out PSNR: fit or generalise
     if reference is not None:  # the exported sigmas against the exact errors: the mesh's vertices, the fused depth
         import open3d as o3d
 

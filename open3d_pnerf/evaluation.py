@@ -16,7 +16,7 @@ from .raycast import MeshRaycaster
 
 __all__ = ["GAUSSIAN_SHARES", "auce", "ause", "depth_calibration", "depth_errors", "depth_nll", "exact_sigma_coverage",
            "geometry_metrics", "heldout_scores", "heldout_views", "mse_to_psnr", "psnr", "score_views", "sigma_coverage",
-           "sigma_multiple", "sparsification", "ssim", "training_depth_errors", "training_pixels"]
+           "sigma_multiple", "sparsification", "ssim", "training_depth_errors", "training_pixels", "training_psnr"]
 
 
 def mse_to_psnr(mse):
@@ -364,6 +364,18 @@ def training_pixels(recon, sequence: RGBDSequence, frames: int = 8, pixels: int 
         u, v = (torch.as_tensor(c, dtype=torch.float32, device=recon.device)
                 for c in pixel_coordinates(pix, seq.image_size[1]))
         yield int(i), seq.intrinsic, u, v, depth[pix]
+
+
+def training_psnr(recon, sequence: RGBDSequence, frames: int = 8) -> float:
+    """Mean PSNR (dB) of a Reconstruction's renders of up to `frames` of its training frames (evenly
+    spaced, at the training resolution and each frame's own exposure) against their colour images:
+    how well it fits what it trained on, beside the held-out PSNR (fitting against generalising).
+    Held-out frames are never read."""
+    train = recon.train_indices[evenly_spaced(len(recon.train_indices), frames)]
+    seq = sequence.select(train).scaled_by(recon.config.image_scale)
+    scores = [psnr(recon.render(recon.poses[i], seq.intrinsic, frame=int(i))["color"],
+                   seq.color_on_depth_grid(seq[k].color) / 255.0) for k, i in enumerate(train)]
+    return float(np.mean(scores))
 
 
 def training_depth_errors(recon, sequence: RGBDSequence, frames: int = 8,

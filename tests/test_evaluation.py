@@ -16,7 +16,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from open3d_pnerf import ReconstructionConfig
+from open3d_pnerf import ReconstructionConfig, RGBDSequence
 from open3d_pnerf.comparison import METHODS, Comparison, comparison_figure
 from open3d_pnerf.pipeline import compare_with_tsdf
 from open3d_pnerf.errors import ConfigError, InputError
@@ -37,6 +37,7 @@ from open3d_pnerf.evaluation import (
     sigma_multiple,
     sparsification,
     ssim,
+    training_psnr,
 )
 from open3d_pnerf.pipeline import split_frames
 from open3d_pnerf.reconstruction import Reconstruction
@@ -550,6 +551,20 @@ def test_exact_sigma_coverage_scores_the_export_against_the_exact_surface(compar
     assert coverage["fused_depth"]["within_3"] > 0.9
     with pytest.raises(InputError, match="reference must be the exact surface"):
         exact_sigma_coverage(recon, small_room.sequence, small_room.reference_points())
+
+
+@pytest.mark.slow
+def test_training_psnr_scores_the_training_frames_alone(comparison, small_room):
+    recon, seq = comparison.reconstruction, small_room.sequence
+
+    def with_black(frames):  # the room with the colour of `frames` black
+        images = [(np.zeros_like(seq[i].color) if i in frames else seq[i].color, seq[i].depth) for i in range(len(seq))]
+        return RGBDSequence.from_rgbd_images(images, seq.intrinsic, gt_poses=seq.gt_poses)
+
+    score = training_psnr(recon, seq)
+    assert 10 < score < 60
+    assert training_psnr(recon, with_black(set(recon.holdout_indices))) == pytest.approx(score, abs=1e-6)
+    assert training_psnr(recon, with_black(set(recon.train_indices))) < score - 3
 
 
 @pytest.mark.slow
