@@ -131,8 +131,8 @@ def markdown(result: dict) -> str:
             ("training steps", "steps", 1, ".0f"), ("demo wall time (s)", "wall_s", 1, ".0f")]
     settings = "".join(f" --set {kv}" for kv in meta.get("settings", []))
     lines = [f"`open3d-pnerf demo{settings}` (bundled TUM sample, tracked poses, `fast` preset), {len(runs)} run(s) at "
-             f"commit {meta['commit']}; {meta['machine']}.", "", "| | " + " | ".join(f"run {i + 1}" for i in range(len(runs)))
-             + " |", "|" + " --- |" * (len(runs) + 1)]
+             f"commit {meta['commit']}; {meta['machine']}.", "",
+             "| | " + " | ".join(f"run {i + 1}" for i in range(len(runs))) + " |", "|" + " --- |" * (len(runs) + 1)]
     frames = sorted(int(k.rsplit("_", 1)[1]) for k in runs[0] if k.startswith("psnr_frame_"))
     rows[1:1] = [(f"  frame {i}: PSNR (dB) / share of its pixels inside a training view / PSNR on the others (dB)",
                   (f"psnr_frame_{i}", f"seen_frame_{i}", f"psnr_unseen_frame_{i}"), 1, ".2f") for i in frames]

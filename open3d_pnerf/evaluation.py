@@ -350,13 +350,19 @@ class _Pool:
         return {k: round(float(v), 5) for k, v in out.items()}
 
 
+def _training_frames(recon, sequence: RGBDSequence, frames: int) -> tuple[np.ndarray, RGBDSequence]:
+    """(indices, sequence) of up to `frames` of a Reconstruction's training frames, evenly spaced:
+    their indices in `sequence` and those frames alone at the training resolution."""
+    train = recon.train_indices[evenly_spaced(len(recon.train_indices), frames)]
+    return train, sequence.select(train).scaled_by(recon.config.image_scale)
+
+
 def training_pixels(recon, sequence: RGBDSequence, frames: int = 8, pixels: int = 1024):
     """Yield, for up to `frames` training frames of a Reconstruction (evenly spaced) at the training
     resolution, (i, intrinsic, u, v, z): the frame's index, its o3d PinholeCameraIntrinsic, `pixels`
     random pixels with sensor depth (u, v (P,) float32 tensors on recon.device, drawn from config.seed
     + 2) and their sensor z-depth (P,) m. Held-out frames are never read."""
-    train = recon.train_indices[evenly_spaced(len(recon.train_indices), frames)]
-    seq = sequence.select(train).scaled_by(recon.config.image_scale)
+    train, seq = _training_frames(recon, sequence, frames)
     rng = np.random.default_rng(recon.config.seed + 2)
     for k, i in enumerate(train):
         depth = seq[k].depth.reshape(-1)
@@ -371,8 +377,7 @@ def training_psnr(recon, sequence: RGBDSequence, frames: int = 8) -> float:
     spaced, at the training resolution and each frame's own exposure) against their colour images:
     how well it fits what it trained on, beside the held-out PSNR (fitting against generalising).
     Held-out frames are never read."""
-    train = recon.train_indices[evenly_spaced(len(recon.train_indices), frames)]
-    seq = sequence.select(train).scaled_by(recon.config.image_scale)
+    train, seq = _training_frames(recon, sequence, frames)
     scores = [psnr(recon.render(recon.poses[i], seq.intrinsic, frame=int(i))["color"],
                    seq.color_on_depth_grid(seq[k].color) / 255.0) for k, i in enumerate(train)]
     return float(np.mean(scores))
