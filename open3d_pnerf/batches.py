@@ -88,7 +88,7 @@ class RayBatcher:
     def _load(self, i: int, slot: int) -> None:
         """Decode frame i (colour in [0, 1]; targets in ray-distance metres, NaN = none) into a slot."""
         frame = self.sequence[i]
-        self.colors[slot] = torch.as_tensor(self.sequence.color_on_depth_grid(frame.color), device=self.device
+        self.colors[slot] = torch.as_tensor(self.sequence.color_on_depth_grid(frame.color, frame.depth), device=self.device
                                             ).float().div_(255).view(-1, 3)
         if self.targets is not None:
             t = self.targets
@@ -192,7 +192,8 @@ def heldout_rays(model, sequence: RGBDSequence, poses: np.ndarray, seed: int, n_
     rays, rgbs = [], []
     for k, pose in enumerate(poses):
         pix = rng.choice(h * w, min(per, h * w), replace=False)
-        color = sequence.color_on_depth_grid(sequence[k].color).reshape(-1, 3)[pix] / 255.0
+        frame = sequence[k]
+        color = sequence.color_on_depth_grid(frame.color, frame.depth).reshape(-1, 3)[pix] / 255.0
         u, v = (torch.as_tensor(c, dtype=torch.float32) for c in pixel_coordinates(pix, w))
         rays.append(model.camera_rays(pose, sequence.K, u.to(model.device), v.to(model.device)))
         rgbs.append(torch.as_tensor(color, dtype=torch.float32, device=model.device))

@@ -217,7 +217,7 @@ def heldout_views(recon, sequence: RGBDSequence, surfaces: dict | None = None, s
     casters = {name: MeshRaycaster(mesh) for name, mesh in (surfaces or {}).items()}
     for k, i in enumerate(recon.holdout_indices):
         frame = seq[k]
-        yield {"index": int(i), "color": seq.color_on_depth_grid(frame.color) / 255.0, "depth": frame.depth,
+        yield {"index": int(i), "color": seq.color_on_depth_grid(frame.color, frame.depth) / 255.0, "depth": frame.depth,
                "model": recon.render(recon.poses[i], seq.intrinsic, frame=int(i)),
                "surfaces": {name: caster.render(recon.poses[i], K, w, h) for name, caster in casters.items()}}
 
@@ -378,8 +378,11 @@ def training_psnr(recon, sequence: RGBDSequence, frames: int = 8) -> float:
     how well it fits what it trained on, beside the held-out PSNR (fitting against generalising).
     Held-out frames are never read."""
     train, seq = _training_frames(recon, sequence, frames)
-    scores = [psnr(recon.render(recon.poses[i], seq.intrinsic, frame=int(i))["color"],
-                   seq.color_on_depth_grid(seq[k].color) / 255.0) for k, i in enumerate(train)]
+    scores = []
+    for k, i in enumerate(train):
+        frame = seq[k]
+        scores.append(psnr(recon.render(recon.poses[i], seq.intrinsic, frame=int(i))["color"],
+                           seq.color_on_depth_grid(frame.color, frame.depth) / 255.0))
     return float(np.mean(scores))
 
 

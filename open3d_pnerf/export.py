@@ -288,7 +288,7 @@ def sensor_geometry(recon, sequence: RGBDSequence, config: ExportConfig | None =
         frame = views[k]
         z = _inside_box(frame.depth, views.K, pose, recon.aabb)
         sigma = np.sqrt(noise.sigma(z) ** 2 + noise.systematic_var(z))
-        renders.append({"color": views.color_on_depth_grid(frame.color) / 255.0, "depth": z,
+        renders.append({"color": views.color_on_depth_grid(frame.color, frame.depth) / 255.0, "depth": z,
                         "depth_std": np.where(z > 0, sigma, np.inf).astype(np.float32),
                         "opacity": (z > 0).astype(np.float32)})
     return _geometry(renders, poses, views.K, cfg, np.inf, max(1, round(1 / cfg.scale)))

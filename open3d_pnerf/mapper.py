@@ -67,7 +67,7 @@ class _LiveFrames:
 
     color_registered = True
 
-    def color_on_depth_grid(self, color: np.ndarray) -> np.ndarray:
+    def color_on_depth_grid(self, color: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
         return color
 
     def sequence(self, indices: list[int], name: str = "stream") -> RGBDSequence:

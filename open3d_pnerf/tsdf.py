@@ -7,7 +7,7 @@ import numpy as np
 import open3d as o3d
 from tqdm.auto import tqdm
 
-from .camera import camera_poses, intrinsic_matrix, pose_to_extrinsic
+from .camera import camera_poses, pose_to_extrinsic
 from .data.sequence import RGBDSequence, check_sequence
 from .errors import InputError
 from .raycast import MeshRaycaster
@@ -59,8 +59,8 @@ class TSDFVolume:
     def _tensor(self, array, dtype=o3d.core.float64):
         return o3d.core.Tensor(np.ascontiguousarray(array), dtype, self.device)
 
-    def integrate(self, color: np.ndarray, depth: np.ndarray, K: np.ndarray, pose: np.ndarray, K_color=None):
-        """Fuse one frame: colour uint8 (H, W, 3), depth float32 metres, camera-to-world pose.
+    def integrate(self, color: np.ndarray, depth: np.ndarray, K: np.ndarray, pose: np.ndarray):
+        """Fuse one frame: colour uint8 (H, W, 3) on the depth grid, depth float32 metres, camera-to-world pose.
 
         A frame without valid depth (0 < depth <= depth_max) is skipped.
         """
@@ -82,11 +82,10 @@ class TSDFVolume:
         # centres at integers the nearest pixel is floor(u + 0.5): shift the principal point by half
         # a pixel (else oblique surfaces move by half a pixel's depth change, ~1 cm at 160x120)
         half = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
-        intr_d = self._tensor(np.asarray(K, np.float64) + half)
-        intr_c = self._tensor(np.asarray(K if K_color is None else K_color, np.float64) + half)
+        intr_centred = self._tensor(np.asarray(K, np.float64) + half)
         self._raycaster = None  # the cached ray-casting mesh is stale now
         self.grid.integrate(
-            coords, depth_img, color_img, intr_d, intr_c, extr, 1.0, self.depth_max, self.trunc_multiplier
+            coords, depth_img, color_img, intr_centred, intr_centred, extr, 1.0, self.depth_max, self.trunc_multiplier
         )
 
     def mesh(self, weight_threshold: float | None = None) -> o3d.geometry.TriangleMesh:
@@ -140,10 +139,9 @@ def tsdf_fusion(
     poses = camera_poses(poses, n, "poses")[0]
     volume = TSDFVolume(voxel_size, sdf_trunc, depth_max, device=device, weight_threshold=weight_threshold)
     K = sequence.K
-    K_color = intrinsic_matrix(sequence.color_intrinsic)
     for i in tqdm(range(len(sequence)), desc="TSDF fusion", disable=not progress, leave=False):
         frame = sequence[i]
-        volume.integrate(frame.color, frame.depth, K, poses[i], K_color)
+        volume.integrate(sequence.color_on_depth_grid(frame.color, frame.depth), frame.depth, K, poses[i])
     return volume if return_volume else volume.mesh()
 
 

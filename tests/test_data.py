@@ -213,16 +213,62 @@ def test_seven_scenes_reader(tmp_path):
         assert np.all(depth[10:] == (1500 + 500 * k) / 1000.0)  # depth scale 1000
         assert tuple(seq[k].color[100, 100]) == (0, 50 * k, 100)
     np.testing.assert_array_equal(seq.timestamps, [0.0, 1.0])  # frame numbers
-    # colour is not registered to depth: its own intrinsic (0.905 x focal, -7 px in x)
+    # colour is not registered to depth: the Kinect's colour camera, its own intrinsic 3.5 cm to the side
     ci = seq.color_intrinsic
     assert ci.get_focal_length() == pytest.approx((580 * 0.905, 590 * 0.905))
-    assert ci.get_principal_point() == pytest.approx((321 - 7.0, 239))
-    assert not np.allclose(np.asarray(ci.intrinsic_matrix), seq.K)
+    assert ci.get_principal_point() == pytest.approx((321 + 3.0, 239 - 1.0))
+    np.testing.assert_allclose(seq.color_extrinsic[:3, 3], [-0.035, 0, 0])
+    assert not seq.color_registered
     # to_open3d resamples colour onto the depth grid (uniform colour stays uniform inside)
     rgbd = seq.to_open3d(1)
     assert np.asarray(rgbd.color).shape == (480, 640, 3)
     assert tuple(np.asarray(rgbd.color)[240, 320]) == (0, 50, 100)
     assert np.asarray(rgbd.depth)[240, 320] == pytest.approx(2.0)
+
+
+def offset_colour_camera(baseline: float, depth: np.ndarray) -> RGBDSequence:
+    """One 64x48 frame whose colour pixel (u, v) holds u and v, from a colour camera `baseline` m
+    along x from the depth camera (same intrinsic: f = 50, centre (32, 24))."""
+    K = o3d.camera.PinholeCameraIntrinsic(64, 48, 50.0, 50.0, 32.0, 24.0)
+    u, v = np.meshgrid(np.arange(64), np.arange(48))
+    color = np.stack([u, v, np.zeros_like(u)], -1).astype(np.uint8)
+    extrinsic = np.eye(4)
+    extrinsic[0, 3] = -baseline  # depth-camera points -> colour-camera points
+    return RGBDSequence([images_module.constant_reader(color, depth, "memory")], K, color_extrinsic=extrinsic)
+
+
+def test_colour_camera_beside_the_depth_camera_is_registered_through_each_pixels_depth():
+    depth = np.full((48, 64), 1.0, np.float32)
+    depth[:, 32:] = 2.0
+    depth[20, 10] = 0.0  # a hole takes its nearest neighbour's depth
+    seq = offset_colour_camera(0.1, depth)
+    frame = seq[0]
+    grid = seq.color_on_depth_grid(frame.color, frame.depth).astype(float)
+    # a point at depth z seen at column u sits f * b / z columns to the left in the colour camera
+    assert grid[10, 20, 0] == pytest.approx(20 - 50 * 0.1 / 1.0, abs=0.5)
+    assert grid[10, 50, 0] == pytest.approx(50 - 50 * 0.1 / 2.0, abs=0.5)
+    assert grid[20, 10, 0] == pytest.approx(10 - 5.0, abs=0.5)
+    np.testing.assert_allclose(grid[5:40, 10:60, 1], np.arange(5, 40)[:, None] * np.ones((1, 50)), atol=0.5)
+    assert not seq.color_registered
+    # a frame without any depth falls back to the plane at infinity: no shift at all
+    empty = offset_colour_camera(0.1, np.zeros((48, 64), np.float32))
+    assert empty.color_on_depth_grid(empty[0].color, empty[0].depth)[10, 20, 0] == 20
+    # the same rig at half the image size shifts by half as many pixels
+    half = seq.scaled_by(0.5)
+    small = half.color_on_depth_grid(half[0].color, half[0].depth).astype(float)
+    assert small[5, 10, 0] == pytest.approx(20 - 5.0 + 0.5, abs=1.0)  # colour values are full-size columns
+
+
+def test_colour_camera_beside_the_depth_camera_needs_the_depth_and_a_rigid_offset():
+    depth = np.full((48, 64), 1.0, np.float32)
+    seq = offset_colour_camera(0.1, depth)
+    with pytest.raises(InputError, match="needs the frame's depth.*color_extrinsic"):
+        seq.color_on_depth_grid(seq[0].color)
+    with pytest.raises(InputError, match="depth 32x24, expected the depth grid's 64x48"):
+        seq.color_on_depth_grid(seq[0].color, depth[::2, ::2])
+    K = o3d.camera.PinholeCameraIntrinsic(64, 48, 50.0, 50.0, 32.0, 24.0)
+    with pytest.raises(PoseError, match="color_extrinsic"):
+        RGBDSequence([images_module.constant_reader(seq[0].color, depth, "memory")], K, color_extrinsic=np.eye(4) * 2)
 
 
 def test_seven_scenes_missing_or_lost_poses_leave_only_their_frames_out(tmp_path):

@@ -139,7 +139,7 @@ def write_nerfstudio(sequence: RGBDSequence, path, poses: np.ndarray | None = No
     for i in tqdm(range(n), desc="write frames", disable=not progress, leave=False):
         frame = sequence[i]
         entry = {"file_path": f"images/frame_{i:05d}.png", "transform_matrix": (poses[i] @ OPENGL_TO_OPENCV).tolist()}
-        color = cv2.cvtColor(sequence.color_on_depth_grid(frame.color), cv2.COLOR_RGB2BGR)
+        color = cv2.cvtColor(sequence.color_on_depth_grid(frame.color, frame.depth), cv2.COLOR_RGB2BGR)
         atomic_write(path / entry["file_path"], lambda p: cv2.imwrite(p, color))
         if sequence.has_depth:
             depth = np.round(frame.depth / DEFAULT_DEPTH_UNIT)

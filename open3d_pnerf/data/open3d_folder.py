@@ -89,7 +89,7 @@ def write_sequence(sequence: RGBDSequence, path, depth_scale: float = 1000.0, pr
         depth = np.round(frame.depth * depth_scale)
         if depth.max(initial=0) > 65535:
             raise InputError(f"frame {i}: depth {frame.depth.max():.1f} m overflows 16 bits at depth_scale {depth_scale}")
-        color = cv2.cvtColor(sequence.color_on_depth_grid(frame.color), cv2.COLOR_RGB2BGR)
+        color = cv2.cvtColor(sequence.color_on_depth_grid(frame.color, frame.depth), cv2.COLOR_RGB2BGR)
         atomic_write(path / "color" / f"{i:06d}.png", lambda p: cv2.imwrite(p, color))
         atomic_write(path / "depth" / f"{i:06d}.png", lambda p: cv2.imwrite(p, depth.astype(np.uint16)))
     intr = sequence.intrinsic

@@ -13,6 +13,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 import open3d as o3d
+from scipy import ndimage
 
 from ..camera import check_intrinsic, check_poses, intrinsic_matrix, missing_poses, reproject_depth, scale_intrinsic
 from ..errors import DatasetError, InputError
@@ -40,10 +41,13 @@ class RGBDSequence:
     Frames are read from their source only when indexed, so a 2,000-frame sequence never
     sits in memory at once. ``seq[i]`` gives a :class:`Frame`; ``seq.intrinsic`` is the
     depth camera's ``o3d.camera.PinholeCameraIntrinsic`` (colour is registered to it unless
-    ``color_intrinsic`` says otherwise); ``seq.gt_poses`` is (N, 4, 4) camera-to-world or None,
+    ``color_intrinsic`` and ``color_extrinsic`` say otherwise); ``seq.gt_poses`` is (N, 4, 4) camera-to-world or None,
     with NaN rows for frames the ground truth does not cover (``seq.gt_valid`` says which have it).
     has_depth: False for image-only sequences (their frames' depth is all zero); those carry
     ``sfm`` (:class:`~open3d_pnerf.data.sfm.SfMData`: poses, covariances, sparse points).
+    color_extrinsic: (4, 4) rigid transform from depth-camera to colour-camera coordinates (m) of
+    a rig whose colour camera sits apart from its depth camera (None: they share a centre); the
+    colour is then registered to each depth pixel through that pixel's depth.
     """
 
     def __init__(
@@ -58,6 +62,7 @@ class RGBDSequence:
         image_scale: float = 1.0,
         has_depth: bool = True,
         sfm: SfMData | None = None,
+        color_extrinsic: np.ndarray | None = None,
     ):
         self._readers = list(readers)
         if not self._readers:
@@ -66,6 +71,8 @@ class RGBDSequence:
         self._base_color_intrinsic = (
             check_intrinsic(color_intrinsic, "color_intrinsic") if color_intrinsic else None
         )
+        self.color_extrinsic = None if color_extrinsic is None else check_poses(
+            np.asarray(color_extrinsic, np.float64)[None], 1, f"{name}: color_extrinsic")[0]
         n = len(self._readers)
         self.timestamps = (
             np.arange(n, dtype=np.float64)
@@ -209,6 +216,7 @@ class RGBDSequence:
             image_scale,
             self.has_depth,
             None if self._base_sfm is None else self._base_sfm.select(idx),
+            self.color_extrinsic,
         )
 
     def select(self, indices) -> "RGBDSequence":
@@ -235,10 +243,10 @@ class RGBDSequence:
     def to_open3d(self, index: int) -> o3d.geometry.RGBDImage:
         """Frame `index` as an ``o3d.geometry.RGBDImage`` (depth float metres, colour uint8).
 
-        The colour is resampled onto the depth grid when the two intrinsics differ.
+        The colour is resampled onto the depth grid when the two cameras differ.
         """
         frame = self[index]
-        color = self.color_on_depth_grid(frame.color)
+        color = self.color_on_depth_grid(frame.color, frame.depth)
         return o3d.geometry.RGBDImage.create_from_color_and_depth(
             o3d.geometry.Image(color),
             o3d.geometry.Image(frame.depth),
@@ -249,19 +257,41 @@ class RGBDSequence:
 
     @property
     def color_registered(self) -> bool:
-        """Whether the colour images are registered to the depth (same intrinsic, pixel for pixel)."""
-        return self._base_color_intrinsic is None or np.allclose(
+        """Whether the colour images are registered to the depth (same camera, pixel for pixel)."""
+        same_intrinsic = self._base_color_intrinsic is None or np.allclose(
             self._base_color_intrinsic.intrinsic_matrix, self._base_intrinsic.intrinsic_matrix)
+        return same_intrinsic and (self.color_extrinsic is None or np.allclose(self.color_extrinsic, np.eye(4)))
 
-    def color_on_depth_grid(self, color: np.ndarray) -> np.ndarray:
-        """Resample a colour image onto the depth image's pixel grid (identity if registered)."""
-        if self._base_color_intrinsic is None:
+    def color_on_depth_grid(self, color: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+        """Resample a colour image (H_c, W_c, 3) onto the depth image's pixel grid (identity if registered).
+
+        depth: the frame's depth (H, W) m, needed when the sequence has a ``color_extrinsic``: each
+        depth pixel then takes the colour where its point projects in the colour camera (pixels
+        without depth take the depth of the nearest pixel with it; a frame without any, the plane at
+        infinity). Without an extrinsic the two cameras share a centre and the depth is not needed.
+        """
+        if self.color_registered:
             return color
         kd, kc = self.K, intrinsic_matrix(self.color_intrinsic)
         h, w = self.image_size
-        u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-        map_x = (u - kd[0, 2]) * (kc[0, 0] / kd[0, 0]) + kc[0, 2]
-        map_y = (v - kd[1, 2]) * (kc[1, 1] / kd[1, 1]) + kc[1, 2]
+        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        rays = np.stack([(u - kd[0, 2]) / kd[0, 0], (v - kd[1, 2]) / kd[1, 1], np.ones_like(u)], -1)
+        rotation, offset = np.eye(3), np.zeros(3)
+        if self.color_extrinsic is not None:
+            if depth is None:
+                raise InputError(f"{self.name}: color_on_depth_grid() needs the frame's depth: its colour camera "
+                                 "is offset from the depth camera (color_extrinsic)")
+            depth = np.asarray(depth)
+            if depth.shape != (h, w):
+                raise InputError(f"{self.name}: color_on_depth_grid() got depth {depth.shape[1]}x{depth.shape[0]}, "
+                                 f"expected the depth grid's {w}x{h}")
+            rotation, translation = self.color_extrinsic[:3, :3], self.color_extrinsic[:3, 3]
+            if (depth > 0).any():
+                nearest = ndimage.distance_transform_edt(depth <= 0, return_distances=False, return_indices=True)
+                offset = translation / depth[tuple(nearest)][..., None]  # the camera's offset over each point's z
+        points = rays @ rotation.T + offset  # colour-camera points over the depth-camera z
+        map_x = kc[0, 0] * points[..., 0] / points[..., 2] + kc[0, 2]
+        map_y = kc[1, 1] * points[..., 1] / points[..., 2] + kc[1, 2]
         return cv2.remap(color, map_x.astype(np.float32), map_y.astype(np.float32), cv2.INTER_LINEAR)
 
     # -- construction from memory -------------------------------------------------------
@@ -362,7 +392,7 @@ def _registered_reader(sequence: RGBDSequence, index: int) -> FrameReader:
 
     def read():
         frame = sequence[index]
-        return sequence.color_on_depth_grid(frame.color), frame.depth
+        return sequence.color_on_depth_grid(frame.color, frame.depth), frame.depth
 
     read.source = sequence._describe(index)
     return read

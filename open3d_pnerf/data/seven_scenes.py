@@ -15,6 +15,14 @@ from .images import file_reader
 from .sequence import RGBDSequence
 
 
+# The colour camera of 7-Scenes' Kinect against its depth camera, measured by aligning colour edges
+# with depth edges on redkitchen every10th_0-990 (benchmarks/bench_color_registration.py): focal
+# length ratio, principal-point shift (px at 640x480) and the colour camera's x offset (m).
+COLOR_FOCAL_RATIO = 0.905
+COLOR_CENTRE_SHIFT = (3.0, -1.0)
+COLOR_BASELINE = 0.035
+
+
 def is_seven_scenes(path: Path) -> bool:
     return any(path.glob("frame-*.depth.png"))
 
@@ -45,14 +53,17 @@ def read_seven_scenes(path: Path, intrinsic=None, depth_scale: float | None = No
             intrinsic = check_intrinsic(pinhole(640, 480, k[0, 0], k[1, 1], k[0, 2], k[1, 2]), str(intr_file))
         else:
             intrinsic = pinhole(640, 480, 585.0, 585.0, 320.0, 240.0)
-    if color_intrinsic is None:
-        # 7-Scenes colour is not registered to depth: measured colour = 0.905 x depth image,
-        # shifted -7 px in x (shared/data/7scenes_redkitchen/SOURCE.md).
+    color_extrinsic = None
+    if color_intrinsic is None:  # 7-Scenes colour is not registered to depth: the Kinect's own rig
         fx, fy = intrinsic.get_focal_length()
         cx, cy = intrinsic.get_principal_point()
-        color_intrinsic = pinhole(intrinsic.width, intrinsic.height, fx * 0.905, fy * 0.905, cx - 7.0, cy)
+        color_intrinsic = pinhole(intrinsic.width, intrinsic.height, fx * COLOR_FOCAL_RATIO, fy * COLOR_FOCAL_RATIO,
+                                  cx + COLOR_CENTRE_SHIFT[0], cy + COLOR_CENTRE_SHIFT[1])
+        color_extrinsic = np.eye(4)
+        color_extrinsic[0, 3] = -COLOR_BASELINE
     stamps = np.array([float(re.sub(r"\D", "", d.name) or i) for i, d in enumerate(depth_files)])
-    return RGBDSequence(readers, intrinsic, stamps, gt, depth_trunc, color_intrinsic, path.name, image_scale)
+    return RGBDSequence(readers, intrinsic, stamps, gt, depth_trunc, color_intrinsic, path.name, image_scale,
+                        color_extrinsic=color_extrinsic)
 
 
 def _read_pose(path: Path) -> np.ndarray:

@@ -213,7 +213,7 @@ class FrameRegistration:
 
     def _load(self, index: int) -> "_Image":
         frame = self.sequence[index]
-        color = np.ascontiguousarray(self.sequence.color_on_depth_grid(frame.color))
+        color = np.ascontiguousarray(self.sequence.color_on_depth_grid(frame.color, frame.depth))
         gray = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY)
         depth = frame.depth
         valid = float(np.mean((depth > 0) & (depth < self.max_depth)))
