@@ -319,6 +319,8 @@ CASES = [
          InputError, ("intrinsic", "principal point (319.5, 239.5)", "32x24")),
     Case("color-intrinsic-negative-focal", redwood, lambda r: load_sequence(r, color_intrinsic=pinhole(fy=-1.0)),
          InputError, ("color_intrinsic", "positive")),
+    Case("color-extrinsic-not-rigid", redwood, lambda r: load_sequence(r, color_extrinsic=2 * np.eye(4)),
+         PoseError, ("color_extrinsic",)),
     # sequences: empty, too short, not a sequence
     Case("no-frames", lambda t: [], in_memory, InputError, ("no frames",)),
     Case("rgbdimage-with-grey-colour", lambda t: [o3d.geometry.RGBDImage.create_from_color_and_depth(

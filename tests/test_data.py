@@ -271,6 +271,30 @@ def test_colour_camera_beside_the_depth_camera_needs_the_depth_and_a_rigid_offse
         RGBDSequence([images_module.constant_reader(seq[0].color, depth, "memory")], K, color_extrinsic=np.eye(4) * 2)
 
 
+def test_colour_camera_turned_but_not_moved_needs_no_depth():
+    seq = offset_colour_camera(0.0, np.full((48, 64), 1.0, np.float32))
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec([0.0, np.arctan(2 / 50), 0.0]).as_matrix()  # 2 px at f = 50
+    turned = RGBDSequence([images_module.constant_reader(seq[0].color, seq[0].depth, "memory")], seq.intrinsic,
+                          color_extrinsic=turn)
+    grid = turned.color_on_depth_grid(turned[0].color).astype(float)
+    assert grid[24, 32, 0] == pytest.approx(34, abs=0.5)  # the centre pixel's ray, 2 px right in the colour camera
+
+
+def test_load_sequence_places_the_colour_camera_and_seven_scenes_overrides_drop_the_kinects(tmp_path):
+    root, _ = make_redwood(tmp_path / "rw")
+    rig = np.eye(4)
+    rig[0, 3] = -0.02
+    np.testing.assert_array_equal(load_sequence(root, color_extrinsic=rig).color_extrinsic, rig)
+    assert load_sequence(root).color_extrinsic is None
+    kitchen, _ = make_seven_scenes(tmp_path / "kitchen")
+    own = load_sequence(kitchen, color_intrinsic=load_sequence(kitchen).intrinsic)
+    assert own.color_extrinsic is None and own.color_registered  # the given intrinsic, at the depth camera
+    moved = load_sequence(kitchen, color_extrinsic=rig)
+    np.testing.assert_allclose(np.asarray(moved.color_intrinsic.intrinsic_matrix), moved.K)
+    np.testing.assert_array_equal(moved.color_extrinsic, rig)
+
+
 def test_seven_scenes_missing_or_lost_poses_leave_only_their_frames_out(tmp_path):
     root, poses = make_seven_scenes(tmp_path / "kitchen", n=3)
     (root / "frame-000000.pose.txt").unlink()

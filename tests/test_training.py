@@ -295,7 +295,7 @@ def test_ray_batcher_draws_its_target_share_from_sparse_targets(scene):
     assert (batch.weight[has] == 0.5).all() and (batch.weight[~has] == 0).all()
     frame = int(batch.frames[has][0])
     col, row = int(batch.u[has][0].round()), int(batch.v[has][0].round())
-    image = seq.color_on_depth_grid(seq[frame].color).astype(np.float64) / 255
+    image = seq.color_on_depth_grid(seq[frame].color, seq[frame].depth).astype(np.float64) / 255
     # u = col + 0.3, v = row - 0.2: 30% of the next column, 20% of the row above
     expected = (0.2 * (0.7 * image[row - 1, col] + 0.3 * image[row - 1, col + 1])
                 + 0.8 * (0.7 * image[row, col] + 0.3 * image[row, col + 1]))

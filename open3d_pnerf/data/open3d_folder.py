@@ -24,7 +24,7 @@ def is_open3d_folder(path: Path) -> bool:
 
 
 def read_open3d_folder(path: Path, intrinsic=None, depth_scale: float | None = None, depth_trunc: float = 0.0,
-                       color_intrinsic=None, image_scale: float = 1.0) -> RGBDSequence:
+                       color_intrinsic=None, image_scale: float = 1.0, color_extrinsic=None) -> RGBDSequence:
     """An Open3D/Redwood folder: images paired by sorted name, depth scale from the JSON (default
     1000), the first ``*.log`` as ground truth when it has a pose per frame."""
     color_dir = next((path / n for n in ("color", "rgb", "image") if (path / n).is_dir()), None)
@@ -45,7 +45,7 @@ def read_open3d_folder(path: Path, intrinsic=None, depth_scale: float | None = N
         warnings.warn(f"{logs[0]}: {len(poses)} poses for {len(readers)} frames; gt_poses left out")
         poses = None
     return RGBDSequence(readers, intrinsic, np.arange(len(readers), dtype=float), poses, depth_trunc,
-                        color_intrinsic, path.name, image_scale)
+                        color_intrinsic, path.name, image_scale, color_extrinsic=color_extrinsic)
 
 
 def _find_intrinsic_json(path: Path, warn: bool = True):

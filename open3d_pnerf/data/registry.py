@@ -19,7 +19,7 @@ from ..camera import check_intrinsic
 from ..errors import DatasetError, InputError
 from .sequence import RGBDSequence, check_first_frame
 
-RGBD_OPTIONS = frozenset({"intrinsic", "depth_scale", "depth_trunc", "color_intrinsic"})
+RGBD_OPTIONS = frozenset({"intrinsic", "depth_scale", "depth_trunc", "color_intrinsic", "color_extrinsic"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,10 +60,15 @@ def load_sequence(
     max_frames: int | None = None,
     image_scale: float = 1.0,
     color_intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None,
+    color_extrinsic: np.ndarray | None = None,
 ) -> RGBDSequence:
     """Read a dataset folder, detecting its layout (see the README's table of formats).
 
-    intrinsic / color_intrinsic / depth_scale override what the folder says (RGB-D formats).
+    intrinsic / color_intrinsic / depth_scale override what the folder says (RGB-D formats);
+    color_extrinsic (4, 4) places the colour camera (depth-camera to colour-camera coordinates,
+    m) where it is not at the depth camera's centre (a 7-Scenes folder has its Kinect's colour
+    camera unless color_intrinsic or color_extrinsic is given; the one not given is then the
+    depth camera's).
     depth_trunc (m, 0 = none) drops farther depth. stride keeps every stride-th frame,
     max_frames caps the count after striding. image_scale in (0, 1] resizes frames on load.
     An image-only folder (e.g. LLFF) gives a sequence without depth that carries its structure
@@ -86,7 +91,7 @@ def load_sequence(
         check_intrinsic(intrinsic)
     fmt = detect_format(path)
     given = {"intrinsic": intrinsic, "depth_scale": depth_scale, "color_intrinsic": color_intrinsic,
-             "depth_trunc": depth_trunc or None}
+             "color_extrinsic": color_extrinsic, "depth_trunc": depth_trunc or None}
     given = {k: v for k, v in given.items() if v is not None}
     unused = [k for k in given if k not in fmt.options]
     if unused:

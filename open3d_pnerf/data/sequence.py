@@ -265,10 +265,12 @@ class RGBDSequence:
     def color_on_depth_grid(self, color: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
         """Resample a colour image (H_c, W_c, 3) onto the depth image's pixel grid (identity if registered).
 
-        depth: the frame's depth (H, W) m, needed when the sequence has a ``color_extrinsic``: each
-        depth pixel then takes the colour where its point projects in the colour camera (pixels
-        without depth take the depth of the nearest pixel with it; a frame without any, the plane at
-        infinity). Without an extrinsic the two cameras share a centre and the depth is not needed.
+        depth: the frame's depth (H, W) m, needed when the sequence's ``color_extrinsic`` moves the
+        colour camera's centre: each depth pixel then takes the colour where its point projects in
+        the colour camera (pixels without depth, or beyond ``depth_trunc``, take the depth of the
+        nearest pixel with it; a frame without any, the plane at infinity). Occlusion is not tested:
+        a point the colour camera cannot see takes the colour of what hides it. When the two cameras
+        share a centre the depth is not needed.
         """
         if self.color_registered:
             return color
@@ -276,8 +278,9 @@ class RGBDSequence:
         h, w = self.image_size
         u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         rays = np.stack([(u - kd[0, 2]) / kd[0, 0], (v - kd[1, 2]) / kd[1, 1], np.ones_like(u)], -1)
-        rotation, offset = np.eye(3), np.zeros(3)
-        if self.color_extrinsic is not None:
+        rig = np.eye(4) if self.color_extrinsic is None else self.color_extrinsic
+        rotation, translation, offset = rig[:3, :3], rig[:3, 3], np.zeros(3)
+        if translation.any():
             if depth is None:
                 raise InputError(f"{self.name}: color_on_depth_grid() needs the frame's depth: its colour camera "
                                  "is offset from the depth camera (color_extrinsic)")
@@ -285,7 +288,6 @@ class RGBDSequence:
             if depth.shape != (h, w):
                 raise InputError(f"{self.name}: color_on_depth_grid() got depth {depth.shape[1]}x{depth.shape[0]}, "
                                  f"expected the depth grid's {w}x{h}")
-            rotation, translation = self.color_extrinsic[:3, :3], self.color_extrinsic[:3, 3]
             if (depth > 0).any():
                 nearest = ndimage.distance_transform_edt(depth <= 0, return_distances=False, return_indices=True)
                 offset = translation / depth[tuple(nearest)][..., None]  # the camera's offset over each point's z

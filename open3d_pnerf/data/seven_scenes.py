@@ -28,8 +28,9 @@ def is_seven_scenes(path: Path) -> bool:
 
 
 def read_seven_scenes(path: Path, intrinsic=None, depth_scale: float | None = None, depth_trunc: float = 0.0,
-                      color_intrinsic=None, image_scale: float = 1.0) -> RGBDSequence:
-    """A 7-Scenes folder; its colour camera is not registered to the depth camera (see below)."""
+                      color_intrinsic=None, image_scale: float = 1.0, color_extrinsic=None) -> RGBDSequence:
+    """A 7-Scenes folder; its colour camera is not registered to the depth camera: unless
+    color_intrinsic or color_extrinsic is given, the Kinect's measured one (the constants above)."""
     depth_files = sorted(path.glob("frame-*.depth.png"))
     readers, poses = [], []
     scale = depth_scale or 1000.0
@@ -53,8 +54,7 @@ def read_seven_scenes(path: Path, intrinsic=None, depth_scale: float | None = No
             intrinsic = check_intrinsic(pinhole(640, 480, k[0, 0], k[1, 1], k[0, 2], k[1, 2]), str(intr_file))
         else:
             intrinsic = pinhole(640, 480, 585.0, 585.0, 320.0, 240.0)
-    color_extrinsic = None
-    if color_intrinsic is None:  # 7-Scenes colour is not registered to depth: the Kinect's own rig
+    if color_intrinsic is None and color_extrinsic is None:
         fx, fy = intrinsic.get_focal_length()
         cx, cy = intrinsic.get_principal_point()
         color_intrinsic = pinhole(intrinsic.width, intrinsic.height, fx * COLOR_FOCAL_RATIO, fy * COLOR_FOCAL_RATIO,

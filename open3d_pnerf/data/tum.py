@@ -30,7 +30,7 @@ def is_tum(path: Path) -> bool:
 
 
 def read_tum(path: Path, intrinsic=None, depth_scale: float | None = None, depth_trunc: float = 0.0,
-             color_intrinsic=None, image_scale: float = 1.0) -> RGBDSequence:
+             color_intrinsic=None, image_scale: float = 1.0, color_extrinsic=None) -> RGBDSequence:
     """A TUM RGB-D folder: colour and depth associated one to one within TUM_MAX_DT, the
     intrinsic by the folder's Kinect name, ground truth slerped at the depth timestamps.
 
@@ -66,7 +66,8 @@ def read_tum(path: Path, intrinsic=None, depth_scale: float | None = None, depth
         if not known:
             warnings.warn(f"{path}: unknown TUM camera, using the default 525/319.5/239.5 intrinsic")
         intrinsic = pinhole(640, 480, *params)
-    return RGBDSequence(readers, intrinsic, stamps, poses, depth_trunc, color_intrinsic, path.name, image_scale)
+    return RGBDSequence(readers, intrinsic, stamps, poses, depth_trunc, color_intrinsic, path.name, image_scale,
+                        color_extrinsic=color_extrinsic)
 
 
 def read_list(path: Path) -> list[list[str]]:
