@@ -108,7 +108,8 @@ def main():
              f"{meta['report']} (every 4th); {meta['minutes']} min, {meta['machine']}.", "",
              "Score: mean colour gradient (relative to the image's mean) at the colour pixels the depth-edge "
              "pixels project to; higher is better aligned.", "",
-             "| registration | focal ratio | dx (px) | dy (px) | baseline (m) | score, fit subset | score, report subset |",
+             "| registration | focal ratio | dx (px) | dy (px) | baseline (m) | score, fit subset "
+             "| score, report subset |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
     lines += [f"| {r['registration']} | {r['ratio']} | {r['dx']:+.2f} | {r['dy']:+.2f} | {r['baseline']:.3f} | "
               f"{r['fit score']:.3f} | {r['report score']:.3f} |" for r in rows]

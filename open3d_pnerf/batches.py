@@ -88,8 +88,8 @@ class RayBatcher:
     def _load(self, i: int, slot: int) -> None:
         """Decode frame i (colour in [0, 1]; targets in ray-distance metres, NaN = none) into a slot."""
         frame = self.sequence[i]
-        self.colors[slot] = torch.as_tensor(self.sequence.color_on_depth_grid(frame.color, frame.depth), device=self.device
-                                            ).float().div_(255).view(-1, 3)
+        color = self.sequence.color_on_depth_grid(frame.color, frame.depth)
+        self.colors[slot] = torch.as_tensor(color, device=self.device).float().div_(255).view(-1, 3)
         if self.targets is not None:
             t = self.targets
             valid = torch.as_tensor(np.asarray(t.valid[i]), device=self.device).view(-1)

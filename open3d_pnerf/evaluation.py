@@ -217,7 +217,8 @@ def heldout_views(recon, sequence: RGBDSequence, surfaces: dict | None = None, s
     casters = {name: MeshRaycaster(mesh) for name, mesh in (surfaces or {}).items()}
     for k, i in enumerate(recon.holdout_indices):
         frame = seq[k]
-        yield {"index": int(i), "color": seq.color_on_depth_grid(frame.color, frame.depth) / 255.0, "depth": frame.depth,
+        yield {"index": int(i), "color": seq.color_on_depth_grid(frame.color, frame.depth) / 255.0,
+               "depth": frame.depth,
                "model": recon.render(recon.poses[i], seq.intrinsic, frame=int(i)),
                "surfaces": {name: caster.render(recon.poses[i], K, w, h) for name, caster in casters.items()}}
 

@@ -39,6 +39,10 @@ in benchmarks/ is asked)."""
 _KEY_BITS = 21
 """Bits per axis of a packed voxel key: voxels within 2^20 of the origin (10 km at 1 cm)."""
 
+MERGE_EVERY = 64
+"""Depth maps whose voxel keys are gathered before they join the distinct ones: most voxels are
+seen again, so memory grows with the scene, not the number of views."""
+
 
 def _packed(keys: np.ndarray) -> np.ndarray:
     """(M, 3) integer voxel keys -> (M',) int64 packed keys, one number per voxel (distinct voxels
@@ -103,7 +107,7 @@ class ObservedSurface:
         (2, 3) (stray far returns), or more than 2^20 voxels from the origin, are left out. The
         views are kept for :meth:`seen_through`."""
         nearest = np.zeros(np.shape(depths), np.float16)  # the nearest surface around each pixel: 0 where none
-        keys = []
+        keys, pending = np.zeros(0, np.int64), []
         for k, (depth, mask, pose) in enumerate(zip(depths, valid, poses)):  # each map read once
             seen = mask & (depth > 0)
             around = ndimage.minimum_filter(np.where(seen, depth, np.inf), 3, mode="nearest")
@@ -111,8 +115,10 @@ class ObservedSurface:
             pts = backproject(depth, K, pose, seen)[0]
             if aabb is not None:
                 pts = pts[((pts >= aabb[0]) & (pts <= aabb[1])).all(1)]
-            keys.append(_distinct(_packed(np.floor(pts / voxel_size))))
-        keys = _unpacked(_distinct(np.concatenate(keys))) if keys else np.zeros((0, 3), np.int64)
+            pending.append(_distinct(_packed(np.floor(pts / voxel_size))))
+            if len(pending) == MERGE_EVERY:
+                keys, pending = _distinct(np.concatenate([keys, *pending])), []
+        keys = _unpacked(_distinct(np.concatenate([keys, *pending])))
         return cls(float(voxel_size), (keys + 0.5) * voxel_size, nearest, K, poses)
 
     def __len__(self) -> int:

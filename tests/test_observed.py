@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from open3d_pnerf.errors import InputError
-from open3d_pnerf.observed import ObservedSurface
+from open3d_pnerf.observed import MERGE_EVERY, ObservedSurface
 
 K = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
 
@@ -51,11 +51,13 @@ def test_points_outside_the_box_and_invalid_pixels_are_not_observed():
     assert len(boxed) == 0
 
 
-def test_the_voxels_of_two_views_are_each_occupied_voxel_once_in_every_octant():
+@pytest.mark.parametrize("views", [2, 2 * MERGE_EVERY + 3])  # the keys merged once, and in batches
+def test_the_voxels_of_the_views_are_each_occupied_voxel_once_in_every_octant(views):
     rng = np.random.default_rng(0)
-    depth = rng.uniform(0.5, 3.0, (2, 48, 64))
-    poses = np.stack([np.eye(4), np.eye(4)])
-    poses[1, :3, 3] = [-1.3, 0.7, -2.2]  # the second view's points straddle the origin: negative keys too
+    depth = rng.uniform(0.5, 3.0, (views, 48, 64))
+    poses = np.stack([np.eye(4)] * views)
+    poses[:, 0, 3] = 0.3 * np.arange(views)  # each view adds voxels of its own
+    poses[1::2, :3, 3] += [-1.3, 0.7, -2.2]  # every other view's points straddle the origin: negative keys too
     observed = ObservedSurface.from_depths(depth, depth > 0, K, poses, 0.05)
     rows, cols = np.mgrid[:48, :64]
     points = []
