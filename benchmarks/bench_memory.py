@@ -9,8 +9,8 @@ each stage.
     python benchmarks/bench_memory.py [--frames 2000] [--steps 300] [--threads 1]
 
 Writes benchmarks/results/memory.json (memory_<frames>.json for other sizes). Needs no
-shared data. About 37 minutes at 2,000 frames on this 2-core machine (8 writing the frames,
-14 tracking with ~1,950 loop-closure pairs, 6 building depth targets, 1.5 training and export).
+shared data. About 36 minutes at 2,000 frames on this 2-core machine (10 writing the frames,
+5.5 tracking, 8 building depth targets, 1.5 training and export: results/memory.json).
 """
 
 from __future__ import annotations
