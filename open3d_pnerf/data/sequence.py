@@ -8,6 +8,7 @@ Inside the library depth is z-depth in metres (float32, 0 = invalid) and colour 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Sequence
 
 import cv2
@@ -260,7 +261,7 @@ class RGBDSequence:
         """Whether the colour images are registered to the depth (same camera, pixel for pixel)."""
         same_intrinsic = self._base_color_intrinsic is None or np.allclose(
             self._base_color_intrinsic.intrinsic_matrix, self._base_intrinsic.intrinsic_matrix)
-        return same_intrinsic and (self.color_extrinsic is None or np.allclose(self.color_extrinsic, np.eye(4)))
+        return same_intrinsic and np.allclose(self._color_rig, np.eye(4))
 
     def color_on_depth_grid(self, color: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
         """Resample a colour image (H_c, W_c, 3) onto the depth image's pixel grid (identity if registered).
@@ -274,27 +275,46 @@ class RGBDSequence:
         """
         if self.color_registered:
             return color
+        translation = self._color_rig[:3, 3]
+        if not translation.any():
+            return cv2.remap(color, *self._plane_maps, cv2.INTER_LINEAR)
+        if depth is None:
+            raise InputError(f"{self.name}: color_on_depth_grid() needs the frame's depth: its colour camera "
+                             "is offset from the depth camera (color_extrinsic)")
+        depth = np.asarray(depth)
+        h, w = self.image_size
+        if depth.shape != (h, w):
+            raise InputError(f"{self.name}: color_on_depth_grid() got depth {depth.shape[1]}x{depth.shape[0]}, "
+                             f"expected the depth grid's {w}x{h}")
+        if not (depth > 0).any():
+            return cv2.remap(color, *self._plane_maps, cv2.INTER_LINEAR)
+        nearest = ndimage.distance_transform_edt(depth <= 0, return_distances=False, return_indices=True)
+        offset = translation / depth[tuple(nearest)][..., None]  # the camera's offset over each point's z
+        return cv2.remap(color, *self._color_maps(offset), cv2.INTER_LINEAR)
+
+    @property
+    def _color_rig(self) -> np.ndarray:
+        """(4, 4) depth-camera to colour-camera transform (the identity without color_extrinsic)."""
+        return np.eye(4) if self.color_extrinsic is None else self.color_extrinsic
+
+    def _color_maps(self, offset) -> tuple[np.ndarray, np.ndarray]:
+        """(map_x, map_y) float32 (H, W): where each depth pixel's point lands in the colour image,
+        the point being its ray at z = 1 turned into the colour camera plus `offset` ((3,) or
+        (H, W, 3): the colour camera's offset over the point's depth-camera z)."""
         kd, kc = self.K, intrinsic_matrix(self.color_intrinsic)
         h, w = self.image_size
         u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         rays = np.stack([(u - kd[0, 2]) / kd[0, 0], (v - kd[1, 2]) / kd[1, 1], np.ones_like(u)], -1)
-        rig = np.eye(4) if self.color_extrinsic is None else self.color_extrinsic
-        rotation, translation, offset = rig[:3, :3], rig[:3, 3], np.zeros(3)
-        if translation.any():
-            if depth is None:
-                raise InputError(f"{self.name}: color_on_depth_grid() needs the frame's depth: its colour camera "
-                                 "is offset from the depth camera (color_extrinsic)")
-            depth = np.asarray(depth)
-            if depth.shape != (h, w):
-                raise InputError(f"{self.name}: color_on_depth_grid() got depth {depth.shape[1]}x{depth.shape[0]}, "
-                                 f"expected the depth grid's {w}x{h}")
-            if (depth > 0).any():
-                nearest = ndimage.distance_transform_edt(depth <= 0, return_distances=False, return_indices=True)
-                offset = translation / depth[tuple(nearest)][..., None]  # the camera's offset over each point's z
-        points = rays @ rotation.T + offset  # colour-camera points over the depth-camera z
+        points = rays @ self._color_rig[:3, :3].T + offset
         map_x = kc[0, 0] * points[..., 0] / points[..., 2] + kc[0, 2]
         map_y = kc[1, 1] * points[..., 1] / points[..., 2] + kc[1, 2]
-        return cv2.remap(color, map_x.astype(np.float32), map_y.astype(np.float32), cv2.INTER_LINEAR)
+        return map_x.astype(np.float32), map_y.astype(np.float32)
+
+    @functools.cached_property
+    def _plane_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """The colour maps of the plane at infinity: every frame's when the cameras share a centre
+        (computed once per sequence, not on every frame load)."""
+        return self._color_maps(np.zeros(3))
 
     # -- construction from memory -------------------------------------------------------
     @classmethod
