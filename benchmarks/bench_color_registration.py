@@ -16,6 +16,9 @@ project to. A misregistered colour edge lies beside the depth edge, where the gr
 The grid is fitted on redkitchen every10th_0-990 (every 5th of its 100 frames) and the scores are
 reported on frames_150-199 (every 4th frame), which the fit never saw, for the reader's default
 (s = 0.905, dx = -7 px, no baseline), the best without a baseline and the best with one.
+A second table asks whether the colour images carry lens distortion that the pinhole maps
+ignore: at the best rig's baseline, a radial term k1 on the colour camera's normalised
+coordinates (x, y) -> (x, y) (1 + k1 (x^2 + y^2)), each k1 with its best focal ratio and shift.
 About a minute; needs the shared data.
 
     python benchmarks/bench_color_registration.py
@@ -38,6 +41,8 @@ REPORT = SHARED / "7scenes_redkitchen" / "frames_150-199"
 BASELINES = (0.0, 0.01, 0.02, 0.025, 0.03, 0.035, 0.04, 0.05)
 DX_AROUND = np.arange(-4.0, 4.01, 0.5)  # px around the shift that keeps the default's at 1.4 m
 DY = np.arange(-2.0, 1.01, 0.25)
+K1 = (-0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2)  # the colour camera's radial distortion
+RATIOS = (0.885, 0.895, 0.905, 0.915, 0.925)  # a distortion changes the focal length that fits best
 EDGE_STEP = 0.5  # a depth edge: |grad z| / z over this (per pixel)
 
 
@@ -62,12 +67,15 @@ def edges(path, every: int) -> list[tuple]:
     return out
 
 
-def score(frames: list[tuple], ratio: float, dx: float, dy: float, baseline: float) -> float:
-    """The mean relative colour gradient at the projected depth-edge pixels (see the module)."""
+def score(frames: list[tuple], ratio: float, dx: float, dy: float, baseline: float, k1: float = 0.0) -> float:
+    """The mean relative colour gradient at the projected depth-edge pixels (see the module), the
+    colour camera with radial distortion k1."""
     values = []
     for grad, u, v, z, (f, cx, cy) in frames:
-        uc = ratio * ((u - cx) - f * baseline / z) + cx + dx
-        vc = ratio * (v - cy) + cy + dy
+        x, y = ((u - cx) - f * baseline / z) / f, (v - cy) / f
+        radial = 1 + k1 * (x * x + y * y)
+        uc = ratio * f * x * radial + cx + dx
+        vc = ratio * f * y * radial + cy + dy
         values.append(cv2.remap(grad, uc[None].astype(np.float32), vc[None].astype(np.float32), cv2.INTER_LINEAR,
                                 borderValue=0.0).mean())
     return float(np.mean(values))
@@ -92,6 +100,20 @@ def fit(frames: list[tuple], default: dict) -> list[dict]:
     return sorted(rows, key=lambda r: -r["score"])
 
 
+def fit_distortion(fit_frames: list[tuple], report_frames: list[tuple], rig: dict) -> list[dict]:
+    """Per k1 in K1: the best focal ratio and shift (within 2 / 1 px of `rig`'s) at `rig`'s baseline
+    on the fit subset, with its scores on both subsets."""
+    rows = []
+    for k1 in K1:
+        grid = itertools.product(RATIOS, rig["dx"] + np.arange(-2.0, 2.01, 0.5), rig["dy"] + np.arange(-1.0, 1.01, 0.5))
+        best = max(({"k1": k1, "ratio": r, "dx": float(dx), "dy": float(dy), "baseline": rig["baseline"],
+                     "fit score": score(fit_frames, r, dx, dy, rig["baseline"], k1)} for r, dx, dy in grid),
+                   key=lambda row: row["fit score"])
+        best["report score"] = score(report_frames, *(best[k] for k in ("ratio", "dx", "dy", "baseline", "k1")))
+        rows.append(best)
+    return rows
+
+
 def main():
     t0 = time.perf_counter()
     fit_frames, report_frames = edges(FIT, 5), edges(REPORT, 4)
@@ -105,10 +127,11 @@ def main():
              "fit score": score(fit_frames, *(p[k] for k in keys)),
              "report score": score(report_frames, *(p[k] for k in keys))} for name, p in chosen.items()]
     per_baseline = [next(r for r in grid if r["baseline"] == b) for b in BASELINES]
+    distortion = fit_distortion(fit_frames, report_frames, grid[0])
     meta = {"fit": str(FIT.name), "report": str(REPORT.name), "machine": machine(),
             "minutes": round((time.perf_counter() - t0) / 60, 2)}
     (OUT / "color_registration.json").write_text(json.dumps(
-        {"meta": meta, "rows": rows, "best_per_baseline": per_baseline}, indent=1))
+        {"meta": meta, "rows": rows, "best_per_baseline": per_baseline, "distortion": distortion}, indent=1))
     lines = [f"7-Scenes redkitchen colour against depth: fitted on {meta['fit']} (every 5th frame), reported on "
              f"{meta['report']} (every 4th); {meta['minutes']} min, {meta['machine']}.", "",
              "Score: mean colour gradient (relative to the image's mean) at the colour pixels the depth-edge "
@@ -122,6 +145,12 @@ def main():
               "| baseline (m) | focal ratio | dx (px) | dy (px) | score |", "| --- | --- | --- | --- | --- |"]
     lines += [f"| {r['baseline']:.3f} | {r['ratio']} | {r['dx']:+.2f} | {r['dy']:+.2f} | {r['score']:.3f} |"
               for r in per_baseline]
+    lines += ["", f"The colour camera's radial distortion k1, at the best rig's baseline ({grid[0]['baseline']:.3f} m), "
+              "each with its best focal ratio and shift on the fit subset:", "",
+              "| k1 | focal ratio | dx (px) | dy (px) | score, fit subset | score, report subset |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    lines += [f"| {r['k1']:+.2f} | {r['ratio']} | {r['dx']:+.2f} | {r['dy']:+.2f} | {r['fit score']:.3f} | "
+              f"{r['report score']:.3f} |" for r in distortion]
     (OUT / "color_registration.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
