@@ -12,7 +12,7 @@ every 8th training frame at that frame's exposure, and writes
   step over 5 cm; the rest) its share of the pixels, its share of the squared-error gap and
   both PSNRs there.
 
-About 15 minutes on 2 cores; needs the shared data.
+About 30 minutes on 2 cores (one run of each loss at a time on each core); needs the shared data.
 
     python benchmarks/bench_color_gap.py [--seed 0] [--jobs 2]
 """
