@@ -24,7 +24,7 @@ from .evaluation import mse_to_psnr
 from .losses import LossWeights
 from .model import PNeRFModel
 from .rendering import BatchShare
-from .settings import FLAG, Settings, count, number, one_of, setting
+from .settings import FLAG, Settings, count, number, one_of, optional, setting
 
 CHECKPOINT_VERSION = 1
 
@@ -70,10 +70,11 @@ class RuntimeConfig(Settings):
     dist_timeout_s: float = setting(600.0, number(0, low_open=True, unit="seconds"))
     """Seconds any rank waits in a collective before raising DistributedError: a dead or hung
     rank gives an error, not a hang. Must exceed the longest gap between ranks."""
-    bf16_mlp: bool = setting(True, FLAG)
+    bf16_mlp: bool | None = setting(None, optional(FLAG))
     """Run the fields' MLP matrix products in bfloat16 (autocast; parameters, encodings, colours
-    and densities stay float32): about twice as fast MLPs on CPUs with bf16 instructions. False:
-    all float32."""
+    and densities stay float32): about twice as fast MLPs where the device multiplies bfloat16
+    natively, several times slower where it emulates it (fields.native_bf16). None: bfloat16
+    where it is native, float32 elsewhere; True: always; False: all float32."""
 
 
 class Trainer:

@@ -625,3 +625,30 @@ def test_levels_that_are_off_change_nothing_the_field_returns(name):
     torch.testing.assert_close(rgb2, rgb)
     field.enable_levels(None)
     assert not torch.allclose(field(x, d)[0], sigma)
+
+
+@pytest.mark.parametrize("bf16, native_here, expected", [
+    (None, True, torch.bfloat16), (None, False, torch.float32),  # the default follows the hardware
+    (True, False, torch.bfloat16), (False, True, torch.float32),  # an explicit choice is kept
+])
+def test_bf16_mlps_run_where_asked_and_by_default_only_where_the_device_has_them(bf16, native_here, expected,
+                                                                                 monkeypatch):
+    from open3d_pnerf.fields import fields as fields_module
+
+    monkeypatch.setattr(fields_module, "native_bf16", lambda device_type: native_here)
+    field = HashGridField(torch.tensor([[-1.0] * 3, [1.0] * 3]), levels=2, log2_table_size=8, max_resolution=8,
+                          bf16=bf16)
+    x = torch.zeros(4, 3)
+    with field.mlp_precision(x):
+        assert torch.nn.functional.linear(x, torch.ones(2, 3)).dtype == expected
+
+
+def test_the_bf16_setting_takes_none_true_or_false_and_nothing_else():
+    from open3d_pnerf import ReconstructionConfig
+    from open3d_pnerf.errors import ConfigError
+
+    assert ReconstructionConfig().runtime.bf16_mlp is None
+    for value in (None, True, False):
+        assert ReconstructionConfig().replace(**{"runtime.bf16_mlp": value}).runtime.bf16_mlp is value
+    with pytest.raises(ConfigError, match="bf16_mlp"):
+        ReconstructionConfig().replace(**{"runtime.bf16_mlp": "yes"})

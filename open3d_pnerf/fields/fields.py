@@ -8,6 +8,7 @@ and return density sigma >= 0 (1/m) and colour in [0, 1].
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import torch
@@ -35,6 +36,18 @@ def density_activation(raw: torch.Tensor) -> torch.Tensor:
     return torch.exp(raw.clamp(max=15.0))
 
 
+@functools.cache
+def native_bf16(device_type: str) -> bool:
+    """Whether `device_type` ("cpu" or "cuda") multiplies bfloat16 matrices natively: a GPU that
+    torch says supports bfloat16, a CPU whose oneDNN does (x86 with AVX-512 or AMX, Arm with
+    bf16). Elsewhere, an x86 CPU with AVX2 alone for one, bfloat16 products are emulated and the
+    MLPs run several times slower than in float32 (benchmarks/README.md, Speed)."""
+    if device_type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    supported = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
+    return device_type == "cpu" and supported is not None and bool(supported())
+
+
 class Field(nn.Module):
     """Common interface: ``encode(x)`` (the input encoding of points), ``geometry(x, encoded) ->
     (sigma, features)``, ``color(features, d) -> rgb``, ``forward(x, d) -> (sigma, rgb)`` (all at
@@ -42,7 +55,8 @@ class Field(nn.Module):
     call and colour only the samples that show (see rendering.volume.render_rays).
 
     bf16: run the MLPs' matrix products in bfloat16 (torch.autocast on CPU or CUDA; outputs,
-    activations and parameters stay float32): about twice as fast on CPUs with bf16 instructions.
+    activations and parameters stay float32): True always, False never, None where the device
+    multiplies bfloat16 natively (:func:`native_bf16`).
     """
 
     encodes_in_one_pass = False
@@ -50,7 +64,7 @@ class Field(nn.Module):
     gradient is one dense tensor (grids), written once per step that way (see
     rendering.volume.render_rays)."""
 
-    def __init__(self, aabb: torch.Tensor, bf16: bool = False):
+    def __init__(self, aabb: torch.Tensor, bf16: bool | None = False):
         super().__init__()
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3))
         self.bf16 = bf16
@@ -58,10 +72,13 @@ class Field(nn.Module):
         self.proposal = None  # a ProposalField (fields.proposal) that places the coarse samples
 
     def mlp_precision(self, x: torch.Tensor):
-        """The autocast context of the MLPs for inputs on x's device (off unless bf16 on CPU or CUDA)."""
+        """The autocast context of the MLPs for inputs on x's device: bfloat16 on CPU or CUDA when
+        `bf16` says so (None: where the device multiplies it natively), else off."""
         device = x.device.type
-        return torch.autocast(device if device in ("cpu", "cuda") else "cpu", dtype=torch.bfloat16,
-                              enabled=self.bf16 and device in ("cpu", "cuda"))
+        if device not in ("cpu", "cuda"):
+            return torch.autocast("cpu", enabled=False)
+        enabled = native_bf16(device) if self.bf16 is None else self.bf16
+        return torch.autocast(device, dtype=torch.bfloat16, enabled=enabled)
 
     def normalize(self, x: torch.Tensor) -> torch.Tensor:
         """World points (B, 3) -> box coordinates in [0, 1]^3 (the NDC box's with a warp)."""
