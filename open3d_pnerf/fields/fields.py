@@ -41,7 +41,7 @@ def native_bf16(device_type: str) -> bool:
     """Whether `device_type` ("cpu" or "cuda") multiplies bfloat16 matrices natively: a GPU that
     torch says supports bfloat16, a CPU whose oneDNN does (x86 with AVX-512 or AMX, Arm with
     bf16). Elsewhere, an x86 CPU with AVX2 alone for one, bfloat16 products are emulated and the
-    MLPs run several times slower than in float32 (benchmarks/README.md, Speed)."""
+    MLPs run several times slower than in float32 (benchmarks/README.md: runtime.bf16_mlp)."""
     if device_type == "cuda":
         return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
     supported = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
