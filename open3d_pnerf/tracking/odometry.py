@@ -72,10 +72,10 @@ class OdometryOptions:
     not stand out)."""
 
     search_all_above_m: float = 0.05
-    """When the predicted motion from the last frame exceeds this (m) or search_all_above_deg,
-    the tracker tries every initial guess (including the keypoint and global registrations) and keeps the
-    best fit, even if the first passes: at such motions odometry can settle in a wrong minimum
-    with an unremarkable residual."""
+    """When the predicted motion from the last frame exceeds this (m) or search_all_above_deg, or
+    a registration lands that far from the prediction, the tracker tries every initial guess
+    (including the keypoint and global registrations) and keeps the best fit, even if the first
+    passes: at such motions odometry can settle in a wrong minimum with an unremarkable residual."""
     search_all_above_deg: float = 5.0
     """See search_all_above_m (degrees)."""
 
