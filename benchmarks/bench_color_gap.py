@@ -8,11 +8,11 @@ every 8th training frame at that frame's exposure, and writes
   colour image, pnerf's render, colour only's render, and where pnerf's squared colour error
   exceeds colour only's (red) or falls below it (blue), blurred by 3 px, full scale at 0.01;
 - results/color_gap.{json,md}: both methods' PSNR on the held-out and the training frames, and
-  per pixel class (no sensor depth; within 4 px of a pixel without depth; within 3 px of a depth
-  step over 5 cm; the rest) its share of the pixels, its share of the squared-error gap and
-  both PSNRs there.
+  per pixel class (no sensor depth; the evaluation's depth edges, `evaluation.held_out_edges`:
+  near a depth step or a pixel without depth; the rest) its share of the pixels, its share of
+  the squared-error gap and both PSNRs there.
 
-About 30 minutes on 2 cores (one run of each loss at a time on each core); needs the shared data.
+About 5 minutes on 2 cores (one run of each loss at a time on each core); needs the shared data.
 
     python benchmarks/bench_color_gap.py [--seed 0] [--jobs 2]
 """
@@ -28,7 +28,7 @@ import numpy as np
 from bench_suite import OUT, PATHS, machine, run_in_processes
 
 LOSSES = ("pnerf", "photometric")
-CLASSES = ("no sensor depth", "within 4 px of no depth", "within 3 px of a depth step", "the rest")
+CLASSES = ("no sensor depth", "near a depth step or no depth", "the rest")
 PICTURE_FRAMES = {"held out": 3, "training": 2}  # rows of the picture
 
 
@@ -55,18 +55,15 @@ def run_one(spec: dict) -> dict:
 
 def pixel_classes(depth: np.ndarray) -> np.ndarray:
     """(H, W) index into CLASSES of each pixel of a sensor depth image (m)."""
-    from scipy import ndimage
+    from open3d_pnerf.evaluation import held_out_edges
 
-    hole = depth <= 0
-    near_hole = ndimage.distance_transform_edt(~hole) <= 4
-    gy, gx = np.gradient(np.where(hole, 0.0, depth))
-    step = (np.hypot(gx, gy) > 0.05) & ~hole
-    near_step = ndimage.distance_transform_edt(~step) <= 3
-    return np.select([hole, near_hole, near_step], [0, 1, 2], default=3)
+    return np.select([depth <= 0, held_out_edges(depth)], [0, 1], default=2)
 
 
 def psnr(squared_error_sum: float, count: float) -> float:
-    return round(float(-10 * np.log10(squared_error_sum / count)), 2)
+    from open3d_pnerf.evaluation import mse_to_psnr
+
+    return round(mse_to_psnr(squared_error_sum / count), 2)
 
 
 def analyse(results: list[dict]) -> tuple[dict, np.ndarray]:
@@ -113,8 +110,10 @@ def markdown(report: dict) -> str:
     lines = [f"# Where pnerf's colour trails colour only's, dense 7-Scenes ({report['total_minutes']} min, "
              "`python benchmarks/bench_color_gap.py`)", "",
              f"{report['machine']}; seed {report['seed']}, ground-truth poses, `fast`, 1500 steps, every 4th frame "
-             f"held out, 320x240; training {report['train_s']} s. Picture: `color_gap.png` (per row: the colour "
-             "image, pnerf's render, colour only's render, red where pnerf's squared error is the larger).", "",
+             f"held out, 320x240; training {report['train_s']['pnerf']} s (pnerf), "
+             f"{report['train_s']['photometric']} s (colour only), {report['threads']} thread(s) each. "
+             "Picture: `color_gap.png` (per row: the colour image, pnerf's render, colour only's render, red where "
+             "pnerf's squared error is the larger).", "",
              "| frames | pnerf PSNR (dB) | colour only PSNR (dB) |", "| --- | --- | --- |"]
     lines += [f"| {kind} | {p['pnerf']} | {p['photometric']} |" for kind, p in s["psnr"].items()]
     lines += ["", "Held-out pixels by class:", "",
@@ -134,8 +133,9 @@ def main() -> None:
     specs = [{"loss": loss, "seed": args.seed, "threads": max(1, 2 // args.jobs)} for loss in LOSSES]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: f"{r['loss']}: trained in {r['train_s']} s")
     summary, picture = analyse(results)
-    report = {"machine": machine(), "seed": args.seed, "train_s": {r["loss"]: r["train_s"] for r in results},
-              "summary": summary, "total_minutes": round((time.perf_counter() - start) / 60, 1)}
+    report = {"machine": machine(), "seed": args.seed, "threads": specs[0]["threads"],
+              "train_s": {r["loss"]: r["train_s"] for r in results}, "summary": summary,
+              "total_minutes": round((time.perf_counter() - start) / 60, 1)}
     OUT.mkdir(exist_ok=True)
     cv2.imwrite(str(OUT / "color_gap.png"), picture)
     (OUT / "color_gap.json").write_text(json.dumps(report, indent=1) + "\n")
