@@ -381,9 +381,10 @@ class _Run:
         """The (registration, source) of frame i's candidates that pass: up to the first that
         passes and is not doubtful, or all of them when the camera moves fast or one of them
         lands beyond the search_all_above limits from the prediction. (7-Scenes every 10th frame,
-        frame 87: from the constant-velocity start, odometry settled 42-50 mm off, 70-77 mm from
-        the prediction, at an unremarkable residual and overlap; where exactly depends on the last
-        bits of Open3D's multi-threaded sums, so the frames before decided whether it was tried again.)"""
+        frame 87: from the constant-velocity start, odometry settles mostly 43-54 mm off, 71-80 mm
+        from the prediction, at a residual and overlap that need not stand out; where exactly depends
+        on the last bits of Open3D's multi-threaded sums, so the run decided whether it was tried
+        again: benchmarks/bench_tracking_starts.py.)"""
         passed = []
         search_all = self.fast_motion(i)
         for name, source, init, expected in self.candidates(i):
