@@ -239,7 +239,7 @@ def test_a_frame_read_ahead_is_the_frame_read_when_asked(sample):
     assert isinstance(ahead._cache[2], Future)
     read_ahead, asked = ahead.image(2), FrameRegistration(sample).image(2)
     assert read_ahead.valid == asked.valid
-    for name in ("depth", "normals", "depth_normals"):
+    for name in ("depth", "normals", "corner_depths", "corner_normals"):
         np.testing.assert_array_equal(getattr(read_ahead.geometry, name), getattr(asked.geometry, name))
     np.testing.assert_array_equal(read_ahead.geometry.samples[0], asked.geometry.samples[0])
     np.testing.assert_array_equal(read_ahead.rgbd.color.as_tensor().numpy(), asked.rgbd.color.as_tensor().numpy())

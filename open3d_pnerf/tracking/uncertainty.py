@@ -141,7 +141,8 @@ class DepthFrame:
     def of(cls, depth: np.ndarray, K: np.ndarray, max_depth: float) -> "DepthFrame":
         depth = np.where((depth > 0) & (depth < max_depth), depth, 0.0)
         frame = cls(depth, surface_normals(depth, K), np.asarray(K, np.float64), float(max_depth))
-        frame.samples, frame.depth_normals  # what every registration uses, computed now (prefetching: off the main thread)
+        # what every registration uses, computed now (prefetching: off the main thread)
+        frame.sample_tiles, frame.corner_depths, frame.corner_normals
         return frame
 
     @functools.cached_property
@@ -159,22 +160,33 @@ class DepthFrame:
         return backproject(self.depth, self.K, mask=mask & (self.depth > 0))
 
     @functools.cached_property
-    def depth_normals(self) -> np.ndarray:
-        """(H * W, 4): each pixel's depth (zero where it has no normal) and normal, for one look-up
-        of a bilinear cell's corners."""
-        n = self.normals
-        has_normal = (n[..., 0] != 0) | (n[..., 1] != 0) | (n[..., 2] != 0)
-        return np.concatenate([(self.depth * has_normal)[..., None], self.normals], 2).reshape(-1, 4)
+    def sample_tiles(self) -> np.ndarray:
+        """(M,) the tile (cluster, TILES) of the image that each sample lies in."""
+        h, w = self.depth.shape
+        v, u = np.divmod(self.samples[1], w)
+        return (v * TILES[1] // h) * TILES[0] + u * TILES[0] // w
 
-    def surface_at(self, q: np.ndarray, max_step: float):
+    @functools.cached_property
+    def corner_depths(self) -> np.ndarray:
+        """(H * W,) each pixel's depth, zero where it has no normal: what a bilinear cell's corners read."""
+        n = self.normals
+        return (self.depth * ((n[..., 0] != 0) | (n[..., 1] != 0) | (n[..., 2] != 0))).ravel()
+
+    @functools.cached_property
+    def corner_normals(self) -> np.ndarray:
+        """(3, H * W) each pixel's normal, a row per axis."""
+        return np.ascontiguousarray(self.normals.reshape(-1, 3).T)
+
+    def surface_at(self, q: np.ndarray, inlier_distance: float):
         """The surface under camera-frame points q (M, 3), bilinearly interpolated at each point's
         sub-pixel projection, for those points whose four neighbouring pixels all have depth and
-        normals, within max_step (m) or JUMP times the depth of each other (not across a depth
-        discontinuity): their indices into q (K,), points m and unit normals n (K, 3); `along`
-        (K, 3), the derivative of n . (q - m) with respect to q when m follows the interpolated
-        surface (n itself on a plane that the normals describe exactly); the (K,) sum of the squared
-        interpolation weights (1 on a pixel, 1/4 between four: how much of one pixel's noise the
-        interpolated depth keeps)."""
+        normals, within inlier_distance (m) or JUMP times the depth of each other (not across a
+        depth discontinuity), and that lie within inlier_distance of the interpolated surface
+        point. Returns their indices into q (K,); as (3, K) rows of x, y, z: the points q[index],
+        the surface points m and unit normals n, and `along`, the derivative of n . (q - m) with
+        respect to q when m follows the interpolated surface (n itself on a plane that the normals
+        describe exactly); and the (K,) sum of the squared interpolation weights (1 on a pixel, 1/4
+        between four: how much of one pixel's noise the interpolated depth keeps)."""
         h, w = self.depth.shape
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
         z = q[:, 2]
@@ -183,75 +195,79 @@ class DepthFrame:
         v = np.divide(q[:, 1], z, out=np.zeros_like(z), where=ahead) * fy + cy
         u0, v0 = np.floor(u), np.floor(v)
         index = np.flatnonzero(ahead & (u0 >= 0) & (u0 < w - 1) & (v0 >= 0) & (v0 < h - 1))
-        corner = (v0[index] * w + u0[index]).astype(np.int64)
-        # (4 channels [depth, n], 4 corners (u, v), (u + 1, v), (u, v + 1), (u + 1, v + 1), K)
-        cell = np.take(self.depth_normals, corner + np.array([0, 1, w, w + 1])[:, None], axis=0).transpose(2, 0, 1).copy()
-        d = cell[0]
-        low = np.minimum(np.minimum(d[0], d[1]), np.minimum(d[2], d[3]))
-        high = np.maximum(np.maximum(d[0], d[1]), np.maximum(d[2], d[3]))
-        good = np.flatnonzero((low > 0) & (high - low < np.maximum(max_step, JUMP * low)))
-        index, cell = index[good], cell[:, :, good]
-        d, q, z, u, v = cell[0], q[index], z[index], u[index], v[index]
-        a, b = u - u0[index], v - v0[index]
-        weights = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b])  # (4 corners, K)
-        depth, *normal = (cell * weights).sum(1)
-        ray = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], 1)
-        m = ray * depth[:, None]
-        n = np.stack(normal, 1)
-        n /= np.maximum(np.sqrt(np.einsum("ij,ij->i", n, n)), 1e-12)[:, None]
-        n_ray = np.einsum("ij,ij->i", n, ray)
-        slope_u = n_ray * ((d[1] - d[0]) * (1 - b) + (d[3] - d[2]) * b) + n[:, 0] * depth / fx  # n . dm/du
-        slope_v = n_ray * ((d[2] - d[0]) * (1 - a) + (d[3] - d[1]) * a) + n[:, 1] * depth / fy  # n . dm/dv
+        # (np.take and np.compress along an axis: several times faster than fancy indexing here)
+        q, u, v, u0, v0 = np.take(q.T, index, axis=1), u[index], v[index], u0[index], v0[index]
+        # a cell's corners (u, v), (u + 1, v), (u, v + 1), (u + 1, v + 1): (4, K)
+        corner = (v0 * w + u0).astype(np.int64) + np.array([0, 1, w, w + 1])[:, None]
+        d = self.corner_depths[corner]
+        a, b = u - u0, v - v0
+        weights = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b])
+        depth = np.einsum("ck,ck->k", weights, d)
+        m = np.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth])
+        gap = q - m
+        low, high = d.min(0), d.max(0)
+        keep = ((low > 0) & (high - low < np.maximum(inlier_distance, JUMP * low))
+                & (np.einsum("jk,jk->k", gap, gap) < inlier_distance**2))
+        index, q, m, a, b, corner, d, weights = (np.compress(keep, x, axis=-1)
+                                                 for x in (index, q, m, a, b, corner, d, weights))
+        depth = m[2]
+        n = np.einsum("ck,jck->jk", weights, np.take(self.corner_normals, corner, axis=1))
+        n /= np.maximum(np.sqrt(np.einsum("jk,jk->k", n, n)), 1e-12)
+        n_ray = (n[0] * m[0] + n[1] * m[1]) / depth + n[2]  # n . the ray (m / depth)
+        slope_u = n_ray * ((d[1] - d[0]) * (1 - b) + (d[3] - d[2]) * b) + n[0] * depth / fx  # n . dm/du
+        slope_v = n_ray * ((d[2] - d[0]) * (1 - a) + (d[3] - d[1]) * a) + n[1] * depth / fy  # n . dm/dv
+        z = q[2]
         along = n.copy()  # n - (n . dm/du) du/dq - (n . dm/dv) dv/dq
-        along[:, 0] -= slope_u * fx / z
-        along[:, 1] -= slope_v * fy / z
-        along[:, 2] += (slope_u * fx * q[:, 0] + slope_v * fy * q[:, 1]) / z**2
-        return index, m, n, along, (weights**2).sum(0)
+        along[0] -= slope_u * fx / z
+        along[1] -= slope_v * fy / z
+        along[2] += (slope_u * fx * q[0] + slope_v * fy * q[1]) / z**2
+        return index, q, m, n, along, np.einsum("ck,ck->k", weights, weights)
+
+
+def _moment_jacobian(p: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """(6, K) rows [p x direction, direction] of points p and directions, both (3, K) rows: the
+    derivative of direction . X at X = p with respect to a perturbation exp(xi) X, [rotation, translation]."""
+    out = np.empty((6, p.shape[1]))
+    np.subtract(p[1] * direction[2], p[2] * direction[1], out=out[0])
+    np.subtract(p[2] * direction[0], p[0] * direction[2], out=out[1])
+    np.subtract(p[0] * direction[1], p[1] * direction[0], out=out[2])
+    out[3:] = direction
+    return out
 
 
 def _correspondences(points: np.ndarray, target: DepthFrame, transformation: np.ndarray, inlier_distance: float):
     """Inlier correspondences of source points (M, 3) moved by `transformation`: (index into points,
-    residuals r (K,), Jacobians J (K, 6) of the point-to-plane residual against the plane (m, n),
-    G (K, 6), the residual's derivative along the interpolated surface itself, and weights (K,),
+    residuals r (K,), Jacobians J (6, K) of the point-to-plane residual against the plane (m, n),
+    G (6, K), the residual's derivative along the interpolated surface itself, and weights (K,),
     the inverse of each residual's variance under the sensor's random noise)."""
-    q = points @ transformation[:3, :3].T + transformation[:3, 3]
-    index, m, n, along, kept = target.surface_at(q, inlier_distance)
-    q = q[index]
-    d = q - m
-    close = np.flatnonzero(np.einsum("ij,ij->i", d, d) < inlier_distance**2)
-    index, q, m, n, d, along, kept = index[close], q[close], m[close], n[close], d[close], along[close], kept[close]
-    ray = np.abs(np.einsum("ij,ij->i", n, q)) / q[:, 2]  # the residual per unit of axial (z) noise
-    sigma_q, sigma_m = SENSOR.sigma(q[:, 2]), SENSOR.sigma(m[:, 2])
+    index, q, m, n, along, kept = target.surface_at(points @ transformation[:3, :3].T + transformation[:3, 3],
+                                                    inlier_distance)
+    ray = np.abs(np.einsum("jk,jk->k", n, q)) / q[2]  # the residual per unit of axial (z) noise
+    sigma_q, sigma_m = SENSOR.sigma(q[2]), SENSOR.sigma(m[2])
     weight = 1.0 / (ray**2 * (sigma_q**2 + kept * sigma_m**2))
-    return (index, np.einsum("ij,ij->i", d, n), np.concatenate([np.cross(q, n), n], 1),
-            np.concatenate([np.cross(q, along), along], 1), weight)
+    return index, np.einsum("jk,jk->k", q - m, n), _moment_jacobian(q, n), _moment_jacobian(q, along), weight
 
 
 def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float) -> dict:
     """Point-to-plane residuals of `transformation` both ways: source points against the target
     surface and target points against the source surface (the two snap to pixels in opposite
     directions, so their sub-pixel biases cancel), all with respect to a perturbation exp(xi) X
-    in the target camera's frame. Returns a dict: r (K,), J (K, 6), G (K, 6), w (weights, K),
+    in the target camera's frame. Returns a dict: r (K,), J (6, K), G (6, K), w (weights, K),
     tile (each residual's tile of the image it was sampled in, K); `forward` (the source
     points' residuals, m), `depth` (their source depths, m) and `samples` (the source samples' count)."""
     out = {key: [] for key in ("r", "J", "G", "w", "tile")}
     for a, b, T, sign in ((source, target, transformation, 1.0), (target, source, np.linalg.inv(transformation), -1.0)):
-        points, flat = a.samples
+        points, _ = a.samples
         keep, r, jac, along, weight = _correspondences(points, b, T, inlier_distance)
         if sign > 0:
             out.update(forward=r, depth=points[keep, 2], samples=len(points))
         else:  # back into the target frame: d r / d xi = -[p x R a, R a] for p in the target frame
-            R = transformation[:3, :3]
-            p = points[keep]
-            nrm, alg = jac[:, 3:] @ R.T, along[:, 3:] @ R.T
-            jac = -np.concatenate([np.cross(p, nrm), nrm], 1)
-            along = -np.concatenate([np.cross(p, alg), alg], 1)
-        h, w = a.depth.shape
-        v, u = np.divmod(flat[keep], w)
-        for key, value in zip(("r", "J", "G", "w", "tile"),
-                              (r, jac, along, weight, (v * TILES[1] // h) * TILES[0] + u * TILES[0] // w)):
+            R, p = transformation[:3, :3], points[keep].T
+            jac = -_moment_jacobian(p, R @ jac[3:])
+            along = -_moment_jacobian(p, R @ along[3:])
+        for key, value in zip(("r", "J", "G", "w", "tile"), (r, jac, along, weight, a.sample_tiles[keep])):
             out[key].append(value)
-    return {key: np.concatenate(value) if isinstance(value, list) else value for key, value in out.items()}
+    return {key: np.concatenate(value, axis=-1) if isinstance(value, list) else value for key, value in out.items()}
 
 
 def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
@@ -274,7 +290,7 @@ def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, i
         result = _fit(T, res, misregistration_rad, misregistration_per_motion, frame_steps)
         if k == iterations or not result.usable:
             break
-        step = -result.bread @ (res["J"].T @ (res["w"] * res["r"]))
+        step = -result.bread @ (res["J"] @ (res["w"] * res["r"]))
         if np.all(np.abs(step) < STOP_FRACTION * np.sqrt(np.diag(result.covariance))):
             break
         if previous is not None:
@@ -328,12 +344,13 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misr
     if inliers < MIN_INLIERS:
         return Fit(transformation, overlap, np.inf, inliers, failed, failed, failed)
     rms = float(np.sqrt(np.mean(res["forward"]**2)))
-    terms = res["J"] * (res["w"] * res["r"])[:, None]
-    used, tile = np.unique(res["tile"], return_inverse=True)
-    scores = np.stack([np.bincount(tile, terms[:, j], len(used)) for j in range(6)], 1)
-    meat = scores.T @ scores * len(used) / max(len(used) - 1, 1)
+    tiles = TILES[0] * TILES[1]
+    weighted = res["w"] * res["r"]
+    scores = np.stack([np.bincount(res["tile"], row * weighted, tiles) for row in res["J"]])  # (6, tiles)
+    used = np.count_nonzero(np.bincount(res["tile"], minlength=tiles))
+    meat = scores @ scores.T * used / max(used - 1, 1)
     try:
-        bread = np.linalg.inv(res["J"].T @ (res["G"] * res["w"][:, None]))
+        bread = np.linalg.inv((res["J"] * res["w"]) @ res["G"].T)
     except np.linalg.LinAlgError:
         return Fit(transformation, overlap, rms, inliers, failed, failed, failed)
     residual_covariance = RESIDUAL_INFLATION**2 * (bread @ meat @ bread.T)
