@@ -1,0 +1,88 @@
+"""Which axes of the tracked poses their covariances miss: per axis of the pose error (rotation
+about x, y, z and translation along them, in the camera frame, as `pose_errors` gives it), the RMS
+error, the median standard deviation the covariances claim and the z-scores' std, and the NEES per
+dof of the rotation and translation blocks alone, on TUM fr1/xyz and 7-Scenes 150-199 at 640x480
+and 320x240, loop closures on and off. A diagnostic of the NEES rows of `results/tracking.md`
+(the same tracker and sequences, one run each). About 2 minutes; needs the shared data.
+
+    python benchmarks/bench_tracking_axes.py
+
+Writes benchmarks/results/tracking_axes.json and tracking_axes.md.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+
+import numpy as np
+from bench_suite import OUT, machine
+from bench_tracking import REAL, tracked
+
+from open3d_pnerf.data import load_sequence
+from open3d_pnerf.tracking import consistency_of_errors, pose_errors
+
+AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
+UNITS = (1000.0,) * 6  # mrad and mm
+
+
+def block_nees(errors: np.ndarray, covariances: np.ndarray, block: slice) -> float:
+    """Mean NEES per dof of one (3-dof) block of errors (M, 6) under the marginal covariances (M, 6, 6)."""
+    e, c = errors[:, block], covariances[:, block, block]
+    return float(np.einsum("ni,ni->n", e, np.linalg.solve(c, e[..., None])[..., 0]).mean() / 3)
+
+
+def axes_of(errors: np.ndarray, covariances: np.ndarray) -> dict:
+    """Per-axis RMS error, median claimed sigma and z-score std; block and whole NEES per dof."""
+    sigma = np.sqrt(np.diagonal(covariances, axis1=1, axis2=2))
+    z = errors / sigma
+    return {"rms_error": dict(zip(AXES, np.round(np.sqrt((errors**2).mean(0)) * UNITS, 2).tolist())),
+            "median_sigma": dict(zip(AXES, np.round(np.median(sigma, 0) * UNITS, 2).tolist())),
+            "z_std": dict(zip(AXES, np.round(z.std(0), 2).tolist())),
+            "nees_per_dof_rotation": round(block_nees(errors, covariances, slice(0, 3)), 3),
+            "nees_per_dof_translation": round(block_nees(errors, covariances, slice(3, 6)), 3),
+            "nees_per_dof": round(consistency_of_errors(errors, covariances)["nees_per_dof"], 3)}
+
+
+def run() -> dict:
+    out = {}
+    for name, path in REAL.items():
+        for scale in (1.0, 0.5):
+            seq = load_sequence(path).at_scale(scale)
+            for loops in (True, False):
+                traj, _, _ = tracked(seq, loops)
+                errors = pose_errors(traj.poses, seq.gt_poses)[1:]
+                key = f"{name} {seq.intrinsic.width}x{seq.intrinsic.height} {'loops' if loops else 'odometry only'}"
+                out[key] = axes_of(errors, traj.covariances[1:])
+                print(key, out[key], flush=True)
+    return out
+
+
+def markdown(report: dict) -> str:
+    lines = [f"# Per-axis pose errors against their covariances ({report['minutes']} min, "
+             "`python benchmarks/bench_tracking_axes.py`)", "", f"{report['machine']}.", "",
+             "Per axis (camera frame; rotation in mrad, translation in mm): RMS error / median claimed sigma "
+             "/ z-score std. Then the NEES per dof of the rotation block, the translation block and the whole.", "",
+             "| sequence, setting | " + " | ".join(AXES) + " | NEES/dof rotation, translation, whole |",
+             "| --- |" + " --- |" * (len(AXES) + 1)]
+    for key, r in report["runs"].items():
+        cells = [f"{r['rms_error'][a]} / {r['median_sigma'][a]} / {r['z_std'][a]}" for a in AXES]
+        lines.append(f"| {key} | " + " | ".join(cells) + f" | {r['nees_per_dof_rotation']}, "
+                     f"{r['nees_per_dof_translation']}, {r['nees_per_dof']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    warnings.simplefilter("ignore")  # the tracker's flagged-frame warnings: the table says more
+    start = time.perf_counter()
+    report = {"machine": machine(), "runs": run()}
+    report["minutes"] = round((time.perf_counter() - start) / 60, 1)
+    OUT.mkdir(exist_ok=True)
+    (OUT / "tracking_axes.json").write_text(json.dumps(report, indent=1) + "\n")
+    (OUT / "tracking_axes.md").write_text(markdown(report))
+    print(markdown(report))
+
+
+if __name__ == "__main__":
+    main()
