@@ -3,7 +3,14 @@ about x, y, z and translation along them, in the camera frame, as `pose_errors` 
 error, the median standard deviation the covariances claim and the z-scores' RMS, and the NEES per
 dof of the rotation and translation blocks alone, on TUM fr1/xyz and 7-Scenes 150-199 at 640x480
 and 320x240, loop closures on and off. A diagnostic of the NEES rows of `results/tracking.md`
-(the same tracker and sequences, one run each). About 2 minutes; needs the shared data.
+(the same tracker and sequences, one run each).
+
+Then the same for the steps (loop closures off): each accepted odometry edge's error against the
+ground truth's step (a left perturbation in the target camera's frame, as the edge's covariance
+is), and how its rotation and translation errors go together: the correlation and slope (m) of the
+translation along x against the rotation about y, and along y against x (a turn about a point at
+depth d in front of the camera moves it by (-d ry, d rx, 0)), beside the frames' median depth.
+About 2 minutes; needs the shared data.
 
     python benchmarks/bench_tracking_axes.py
 
@@ -20,6 +27,7 @@ import numpy as np
 from bench_suite import OUT, machine
 from bench_tracking import REAL, tracked
 
+from open3d_pnerf.camera import rotation_vector
 from open3d_pnerf.data import load_sequence
 from open3d_pnerf.tracking import consistency_of_errors, pose_errors
 
@@ -46,8 +54,32 @@ def axes_of(errors: np.ndarray, covariances: np.ndarray) -> dict:
             "nees_per_dof": round(consistency_of_errors(errors, covariances)["nees_per_dof"], 3)}
 
 
-def run() -> dict:
+def step_errors(traj, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Errors (M, 6) of the graph's odometry edges against the ground truth's steps, exp(xi) T = T_gt
+    (first order), and the edges' covariances (M, 6, 6)."""
+    errors, covariances = [], []
+    for edge in traj.pose_graph.edges:
+        if edge.uncertain:
+            continue
+        s, t = edge.source_node_id, edge.target_node_id
+        delta = np.linalg.inv(gt[t]) @ gt[s] @ np.linalg.inv(np.asarray(edge.transformation))
+        errors.append(np.concatenate([rotation_vector(delta[:3, :3]), delta[:3, 3]]))
+        covariances.append(np.linalg.inv(np.asarray(edge.information)))
+    return np.array(errors), np.array(covariances)
+
+
+def coupling(errors: np.ndarray) -> dict:
+    """Correlation and least-squares slope (m) of tx against ry and of ty against rx."""
     out = {}
+    for t, r in (("tx", 1), ("ty", 0)):
+        x, y = errors[:, r], errors[:, 3 + "xyz".index(t[1])]
+        out[f"corr({AXES[r]},{t})"] = round(float(np.corrcoef(x, y)[0, 1]), 2)
+        out[f"slope {t}/{AXES[r]} (m)"] = round(float(x @ y / (x @ x)), 2)
+    return out
+
+
+def run() -> dict:
+    out, steps = {}, {}
     for name, path in REAL.items():
         for scale in (1.0, 0.5):
             seq = load_sequence(path).at_scale(scale)
@@ -57,7 +89,12 @@ def run() -> dict:
                 key = f"{name} {seq.intrinsic.width}x{seq.intrinsic.height} {'loops' if loops else 'odometry only'}"
                 out[key] = axes_of(errors, traj.covariances[1:])
                 print(key, out[key], flush=True)
-    return out
+                if not loops:
+                    e, c = step_errors(traj, seq.gt_poses)
+                    depth = np.median(np.concatenate([seq[i].depth[seq[i].depth > 0] for i in range(0, len(seq), 5)]))
+                    steps[key] = {**axes_of(e, c), **coupling(e), "median depth (m)": round(float(depth), 2)}
+                    print(key, "steps", steps[key], flush=True)
+    return out, steps
 
 
 def markdown(report: dict) -> str:
@@ -68,16 +105,31 @@ def markdown(report: dict) -> str:
              "| sequence, setting | " + " | ".join(AXES) + " | NEES/dof rotation, translation, whole |",
              "| --- |" + " --- |" * (len(AXES) + 1)]
     for key, r in report["runs"].items():
-        cells = [f"{r['rms_error'][a]} / {r['median_sigma'][a]} / {r['z_rms'][a]}" for a in AXES]
-        lines.append(f"| {key} | " + " | ".join(cells) + f" | {r['nees_per_dof_rotation']}, "
+        lines.append(f"| {key} | " + " | ".join(axis_cells(r)) + f" | {r['nees_per_dof_rotation']}, "
                      f"{r['nees_per_dof_translation']}, {r['nees_per_dof']} |")
+    lines += ["", "## Steps: the odometry edges against the ground truth's steps (loop closures off)", "",
+              "Per axis as above, the NEES per dof of the rotation block, the translation block and the whole, then "
+              "how the errors couple: correlation / slope (m) of tx against ry and of ty against rx, and the "
+              "frames' median depth (m).", "",
+              "| sequence, setting | " + " | ".join(AXES) + " | NEES/dof | tx against ry | ty against rx | depth |",
+              "| --- |" + " --- |" * (len(AXES) + 4)]
+    for key, r in report["steps"].items():
+        lines.append(f"| {key} | " + " | ".join(axis_cells(r)) + f" | {r['nees_per_dof_rotation']}, "
+                     f"{r['nees_per_dof_translation']}, {r['nees_per_dof']} | {r['corr(ry,tx)']} / "
+                     f"{r['slope tx/ry (m)']} | {r['corr(rx,ty)']} / {r['slope ty/rx (m)']} | "
+                     f"{r['median depth (m)']} |")
     return "\n".join(lines) + "\n"
+
+
+def axis_cells(r: dict) -> list[str]:
+    return [f"{r['rms_error'][a]} / {r['median_sigma'][a]} / {r['z_rms'][a]}" for a in AXES]
 
 
 def main() -> None:
     warnings.simplefilter("ignore")  # the tracker's flagged-frame warnings: the table says more
     start = time.perf_counter()
-    report = {"machine": machine(), "runs": run()}
+    runs, steps = run()
+    report = {"machine": machine(), "runs": runs, "steps": steps}
     report["minutes"] = round((time.perf_counter() - start) / 60, 1)
     OUT.mkdir(exist_ok=True)
     (OUT / "tracking_axes.json").write_text(json.dumps(report, indent=1) + "\n")
