@@ -26,7 +26,7 @@ from open3d_pnerf.tracking import (
     track,
 )
 from open3d_pnerf.tracking.odometry import FrameRegistration, PairResult, feature_registration, orb_keypoints
-from open3d_pnerf.tracking.tracker import _Run
+from open3d_pnerf.tracking.tracker import _Run, constant_velocity_pose
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz"
@@ -317,6 +317,14 @@ def test_keypoints_give_no_start_without_texture(sample):
 def passing(transformation: np.ndarray, overlap: float, residual_m: float, init: str) -> PairResult:
     return PairResult(transformation=transformation, fitness=1.0, inlier_rmse=residual_m, overlap=overlap,
                       success=True, residual_rms=residual_m, init=init)
+
+
+def test_the_constant_velocity_prediction_repeats_the_last_step_in_the_camera_frame():
+    start = twist_matrix(np.array([0.2, -0.5, 0.7, 1.0, 2.0, 0.5]))
+    step = twist_matrix(np.array([0.0, 0.05, 0.02, 0.02, -0.01, 0.03]))
+    poses = [start, start @ step, start @ step @ step]
+    np.testing.assert_allclose(constant_velocity_pose(poses, 3), start @ step @ step @ step, atol=1e-12)
+    np.testing.assert_allclose(constant_velocity_pose(poses, 1), start)  # one frame: no motion known yet
 
 
 def test_consensus_prefers_votes_then_the_residual_per_overlap():

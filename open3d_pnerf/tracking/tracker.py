@@ -248,6 +248,14 @@ def keyframe_spacing(n_frames: int, keyframe_every: int, max_keyframes: int | No
     return max(keyframe_every, -(-n_frames // max_keyframes))
 
 
+def constant_velocity_pose(poses, i: int) -> np.ndarray:
+    """Frame i's camera-to-world pose (4, 4) if the camera kept its motion from frame i-2 to i-1
+    (poses: a sequence of (4, 4) camera-to-world poses of frames 0..i-1); frame i-1's pose for i < 2."""
+    if i < 2:
+        return poses[i - 1]
+    return poses[i - 1] @ np.linalg.inv(poses[i - 2]) @ poses[i - 1]
+
+
 def _default_loop_odometry(sequence: RGBDSequence, odometry: OdometryOptions) -> OdometryOptions:
     """`odometry`, made purely geometric when the colour is not registered to the depth:
     wide-baseline loop closures magnify any colour-to-depth misregistration in the photometric
@@ -314,9 +322,7 @@ class _Run:
 
     def predicted_pose(self, i: int) -> np.ndarray:
         """Frame i's pose if the camera kept the motion of the last two frames (constant velocity)."""
-        if i < 2:
-            return self.poses[i - 1]
-        return self.poses[i - 1] @ self.relative(i - 1, i - 2)
+        return constant_velocity_pose(self.poses, i)
 
     def candidates(self, i: int):
         """(name, source frame, initial guess source -> i, expected source -> i) to try for frame
