@@ -387,7 +387,7 @@ class _Run:
         """The (registration, source) of frame i's candidates that pass: up to the first that
         passes and is not doubtful, or all of them when the camera moves fast or one of them
         lands beyond the search_all_above limits from the prediction. (7-Scenes every 10th frame,
-        frame 87: from the constant-velocity start, odometry settles mostly 43-54 mm off, 71-80 mm
+        frame 87: when the constant-velocity start passes, odometry settles 37-52 mm off, 66-73 mm
         from the prediction, at a residual and overlap that need not stand out; where exactly depends
         on the last bits of Open3D's multi-threaded sums, so the run decided whether it was tried
         again: benchmarks/bench_tracking_starts.py.)"""
