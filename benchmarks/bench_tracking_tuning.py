@@ -17,7 +17,7 @@ constants); every other setting is the default.
 
     python benchmarks/bench_tracking_tuning.py [--name tracking_tuning]
 
-Writes benchmarks/results/<name>.json and .md, with the run's duration (3 minutes alone on 2 cores).
+Writes benchmarks/results/<name>.json and .md, with the run's duration (about 5 minutes alone on 2 cores).
 """
 
 from __future__ import annotations

@@ -57,7 +57,7 @@ JUMP = 0.05  # neighbouring depths further apart than this fraction of the depth
 STOP_FRACTION = 0.15
 """refine stops before a step below this fraction of the answer's standard deviation on every axis.
 0.1 until the misregistration floor grew with the motion, which made the floor of slow frames
-smaller and their refinement longer: 40.7 against 37.1 ms a frame with 0.15 on 7-Scenes 150-199 at
+smaller and their refinement longer: 59.1 against 52.3 ms a frame with 0.15 on 7-Scenes 150-199 at
 320x240 (results/tracking_tuning.md; benchmarks/README.md)."""
 MAX_RATIO = 0.8  # steps are extrapolated (refine) when each is 0 to this fraction of the one before
 
