@@ -104,25 +104,23 @@ def markdown(report: dict) -> str:
              "/ z-score RMS. Then the NEES per dof of the rotation block, the translation block and the whole.", "",
              "| sequence, setting | " + " | ".join(AXES) + " | NEES/dof rotation, translation, whole |",
              "| --- |" + " --- |" * (len(AXES) + 1)]
-    for key, r in report["runs"].items():
-        lines.append(f"| {key} | " + " | ".join(axis_cells(r)) + f" | {r['nees_per_dof_rotation']}, "
-                     f"{r['nees_per_dof_translation']}, {r['nees_per_dof']} |")
+    lines += [f"| {key} | " + " | ".join(cells(r)) + " |" for key, r in report["runs"].items()]
     lines += ["", "## Steps: the odometry edges against the ground truth's steps (loop closures off)", "",
               "Per axis as above, the NEES per dof of the rotation block, the translation block and the whole, then "
               "how the errors couple: correlation / slope (m) of tx against ry and of ty against rx, and the "
               "frames' median depth (m).", "",
               "| sequence, setting | " + " | ".join(AXES) + " | NEES/dof | tx against ry | ty against rx | depth |",
               "| --- |" + " --- |" * (len(AXES) + 4)]
-    for key, r in report["steps"].items():
-        lines.append(f"| {key} | " + " | ".join(axis_cells(r)) + f" | {r['nees_per_dof_rotation']}, "
-                     f"{r['nees_per_dof_translation']}, {r['nees_per_dof']} | {r['corr(ry,tx)']} / "
-                     f"{r['slope tx/ry (m)']} | {r['corr(rx,ty)']} / {r['slope ty/rx (m)']} | "
-                     f"{r['median depth (m)']} |")
+    lines += [f"| {key} | " + " | ".join(cells(r)) + f" | {r['corr(ry,tx)']} / {r['slope tx/ry (m)']} | "
+              f"{r['corr(rx,ty)']} / {r['slope ty/rx (m)']} | {r['median depth (m)']} |"
+              for key, r in report["steps"].items()]
     return "\n".join(lines) + "\n"
 
 
-def axis_cells(r: dict) -> list[str]:
-    return [f"{r['rms_error'][a]} / {r['median_sigma'][a]} / {r['z_rms'][a]}" for a in AXES]
+def cells(r: dict) -> list[str]:
+    """A row's cells: per axis RMS error / median sigma / z RMS, then the blocks' and the whole NEES."""
+    return ([f"{r['rms_error'][a]} / {r['median_sigma'][a]} / {r['z_rms'][a]}" for a in AXES]
+            + [f"{r['nees_per_dof_rotation']}, {r['nees_per_dof_translation']}, {r['nees_per_dof']}"])
 
 
 def main() -> None:
