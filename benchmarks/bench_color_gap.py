@@ -20,12 +20,11 @@ About 5 minutes on 2 cores (one run of each loss at a time on each core); needs 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import cv2
 import numpy as np
-from bench_suite import OUT, PATHS, machine, run_in_processes
+from bench_suite import OUT, PATHS, machine, run_in_processes, write_result
 
 LOSSES = ("pnerf", "photometric")
 CLASSES = ("no sensor depth", "near a depth step or no depth", "the rest")
@@ -138,9 +137,7 @@ def main() -> None:
               "total_minutes": round((time.perf_counter() - start) / 60, 1)}
     OUT.mkdir(exist_ok=True)
     cv2.imwrite(str(OUT / "color_gap.png"), picture)
-    (OUT / "color_gap.json").write_text(json.dumps(report, indent=1) + "\n")
-    (OUT / "color_gap.md").write_text(markdown(report))
-    print(markdown(report))
+    write_result("color_gap", report, markdown(report))
 
 
 if __name__ == "__main__":

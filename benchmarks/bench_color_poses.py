@@ -24,7 +24,7 @@ import json
 import time
 
 import numpy as np
-from bench_suite import OUT, PATHS, machine, run_in_processes
+from bench_suite import PATHS, machine, run_in_processes, write_result
 
 DATASETS = ("tum", "7scenes")
 VARIANTS = {"ground truth": None, "tracked: colour cameras": True, "tracked: depth cameras": False}
@@ -100,10 +100,7 @@ def main() -> None:
     results = run_in_processes(run_one, specs, args.jobs, lambda r: json.dumps(r))
     report = {"machine": machine(), "seeds": seeds, "steps": args.steps, "runs": results,
               "summary": summary(results), "total_minutes": round((time.perf_counter() - start) / 60, 1)}
-    OUT.mkdir(exist_ok=True)
-    (OUT / "color_poses.json").write_text(json.dumps(report, indent=1) + "\n")
-    (OUT / "color_poses.md").write_text(markdown(report))
-    print(markdown(report))
+    write_result("color_poses", report, markdown(report))
 
 
 if __name__ == "__main__":

@@ -71,6 +71,14 @@ def run_in_processes(run_one, specs: list[dict], jobs: int, summary) -> list[dic
     return [f.result() for f in futures]
 
 
+def write_result(name: str, report: dict, text: str) -> None:
+    """Write results/<name>.json (the report) and results/<name>.md (`text`), and print the text."""
+    OUT.mkdir(exist_ok=True)
+    (OUT / f"{name}.json").write_text(json.dumps(report, indent=1) + "\n")
+    (OUT / f"{name}.md").write_text(text)
+    print(text)
+
+
 def machine() -> str:
     """This machine and torch, for a result file's meta."""
     import torch

@@ -19,12 +19,11 @@ Writes benchmarks/results/tracking_axes.json and tracking_axes.md.
 
 from __future__ import annotations
 
-import json
 import time
 import warnings
 
 import numpy as np
-from bench_suite import OUT, machine
+from bench_suite import machine, write_result
 from bench_tracking import REAL, tracked
 
 from open3d_pnerf.camera import rotation_vector
@@ -32,7 +31,6 @@ from open3d_pnerf.data import load_sequence
 from open3d_pnerf.tracking import consistency_of_errors, pose_errors
 
 AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
-UNITS = (1000.0,) * 6  # mrad and mm
 
 
 def block_nees(errors: np.ndarray, covariances: np.ndarray, block: slice) -> float:
@@ -42,12 +40,12 @@ def block_nees(errors: np.ndarray, covariances: np.ndarray, block: slice) -> flo
 
 
 def axes_of(errors: np.ndarray, covariances: np.ndarray) -> dict:
-    """Per-axis RMS error, median claimed sigma and z-score RMS (1 for honest error bars; a std
+    """Per-axis RMS error and median claimed sigma (mrad / mm), z-score RMS (1 for honest error bars; a std
     would hide an error common to the frames); block and whole NEES per dof."""
     sigma = np.sqrt(np.diagonal(covariances, axis1=1, axis2=2))
     z = errors / sigma
-    return {"rms_error": dict(zip(AXES, np.round(np.sqrt((errors**2).mean(0)) * UNITS, 2).tolist())),
-            "median_sigma": dict(zip(AXES, np.round(np.median(sigma, 0) * UNITS, 2).tolist())),
+    return {"rms_error": dict(zip(AXES, np.round(1000 * np.sqrt((errors**2).mean(0)), 2).tolist())),
+            "median_sigma": dict(zip(AXES, np.round(1000 * np.median(sigma, 0), 2).tolist())),
             "z_rms": dict(zip(AXES, np.round(np.sqrt((z**2).mean(0)), 2).tolist())),
             "nees_per_dof_rotation": round(block_nees(errors, covariances, slice(0, 3)), 3),
             "nees_per_dof_translation": round(block_nees(errors, covariances, slice(3, 6)), 3),
@@ -129,10 +127,7 @@ def main() -> None:
     runs, steps = run()
     report = {"machine": machine(), "runs": runs, "steps": steps}
     report["minutes"] = round((time.perf_counter() - start) / 60, 1)
-    OUT.mkdir(exist_ok=True)
-    (OUT / "tracking_axes.json").write_text(json.dumps(report, indent=1) + "\n")
-    (OUT / "tracking_axes.md").write_text(markdown(report))
-    print(markdown(report))
+    write_result("tracking_axes", report, markdown(report))
 
 
 if __name__ == "__main__":

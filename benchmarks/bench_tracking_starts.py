@@ -22,13 +22,12 @@ About 5 minutes; needs the shared data.
 from __future__ import annotations
 
 import argparse
-import json
 import threading
 import time
 import warnings
 
 import numpy as np
-from bench_suite import OUT, PATHS, SHARED, machine
+from bench_suite import PATHS, SHARED, machine, write_result
 
 from open3d_pnerf.camera import motion
 from open3d_pnerf.data import load_sequence
@@ -135,10 +134,7 @@ def main() -> None:
     start = time.perf_counter()
     report = {"machine": machine(), "sequences": sequences(), "windows": windows(args.runs)}
     report["minutes"] = round((time.perf_counter() - start) / 60, 1)
-    OUT.mkdir(exist_ok=True)
-    (OUT / "tracking_starts.json").write_text(json.dumps(report, indent=1) + "\n")
-    (OUT / "tracking_starts.md").write_text(markdown(report))
-    print(markdown(report))
+    write_result("tracking_starts", report, markdown(report))
 
 
 if __name__ == "__main__":

@@ -23,12 +23,11 @@ Writes benchmarks/results/<name>.json and .md, with the run's duration (about 5 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 import warnings
 
 import numpy as np
-from bench_suite import OUT, SHARED, machine
+from bench_suite import SHARED, machine, write_result
 
 from open3d_pnerf.data import load_sequence
 from open3d_pnerf.tracking import (OdometryOptions, absolute_trajectory_error, consistency_of_errors, pose_errors,
@@ -101,10 +100,7 @@ def main() -> None:
     finally:
         uncertainty.STOP_FRACTION = default_stop
     report["minutes"] = round((time.perf_counter() - start) / 60, 1)
-    OUT.mkdir(exist_ok=True)
-    (OUT / f"{args.name}.json").write_text(json.dumps(report, indent=1) + "\n")
-    (OUT / f"{args.name}.md").write_text(markdown(report))
-    print(markdown(report))
+    write_result(args.name, report, markdown(report))
 
 
 def markdown(report: dict) -> str:
