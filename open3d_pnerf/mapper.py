@@ -34,7 +34,6 @@ from .pipeline import checked_config
 from .reconstruction import Reconstruction
 from .scene import BOX_MARGIN, scene_box
 from .targets import DepthTargets
-from .tracking.covariance import pose_graph_covariances
 from .tracking.odometry import FrameRegistration, OdometryOptions
 from .camera import adjoint, motion
 from .data.sequence import evenly_spaced
@@ -224,7 +223,7 @@ class Mapper:
         """(len(nodes), 6, 6) covariances of frames `nodes` in the pose graph as it is now; after a
         resume, the kept frames' saved ones, and the others' relative to the map plus the map frame's
         they were placed from (carried along the relative pose, as track_onto does)."""
-        graph = pose_graph_covariances(self.run.graph, nodes=nodes)
+        graph = self.run.covariances(nodes, origin=self._anchor or 0)
         out = graph[nodes]
         if self._resumed is not None:
             kept, saved = self._resumed

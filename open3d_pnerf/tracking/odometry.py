@@ -90,10 +90,18 @@ class OdometryOptions:
     depth; for consecutive frames, their registration's own motion): colour/depth timing, rolling
     shutter and motion blur leave a registration off in proportion to how fast the camera moved.
     0 for a simulated sensor."""
+    misregistration_systematic: float = 0.0
+    """What every pose's misregistration grows by per radian of the camera's motion from the
+    reference frame (rotation angle plus translation over the median depth), common to all the
+    sequence's registrations (a calibration error, e.g. a depth camera whose registrations all turn
+    a few percent too far or about a tilted axis): it grows with the distance moved, not with the
+    number of steps, and loop closures, measured with the same error, cannot shrink it. Added to
+    the pose covariances after the pose graph's (see track). 0 for a simulated sensor."""
 
     def without_misregistration(self) -> "OdometryOptions":
         """These options for a simulated sensor: no calibration, timing or rolling-shutter error."""
-        return dataclasses.replace(self, misregistration_rad=0.0, misregistration_per_motion=0.0)
+        return dataclasses.replace(self, misregistration_rad=0.0, misregistration_per_motion=0.0,
+                                   misregistration_systematic=0.0)
 
     def criteria(self) -> list:
         """Open3D convergence criteria, one per pyramid level."""
@@ -108,7 +116,7 @@ class OdometryOptions:
                      "search_all_above_m", "search_all_above_deg"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("misregistration_rad", "misregistration_per_motion"):
+        for name in ("misregistration_rad", "misregistration_per_motion", "misregistration_systematic"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 0 <= self.min_overlap <= 1:

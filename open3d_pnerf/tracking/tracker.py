@@ -18,6 +18,7 @@ from .covariance import pose_graph_covariances
 from .odometry import FrameRegistration, OdometryOptions, PairResult
 from .posegraph import add_edge, loop_closure_candidates, optimize
 from .trajectory import Edge, Trajectory
+from .uncertainty import misregistration_covariance, motion_rad
 
 PINNED_VARIANCE = 1e-10
 """Variance (rad^2, m^2) of the edges that pin known poses to frame 0 when tracking onto a map
@@ -106,7 +107,9 @@ def track(
        the two frames, colour/depth timing and rolling shutter
        (``odometry.misregistration_per_motion``, per radian of each frame's step from its
        neighbour); a loop closure's is LOOP_INFLATION times larger (its images are already in the
-       chain).
+       chain). Then each pose's systematic misregistration (``odometry.misregistration_systematic``
+       per radian of its motion from frame 0), common to all registrations, so neither the chain's
+       length nor loop closures change it.
     4. Colour cameras (``color_poses``, when the colour is registered to the depth): Open3D's
        hybrid answer for each frame from the frame before it (its intensity term dominates, so it
        fits the colour images) is kept beside the refined one, and every frame's colour-camera
@@ -193,7 +196,7 @@ def track_onto(
         _close_loops(run, sequence, keyframes, odometry, loop_odometry, loop_max_distance_m, loop_max_angle_deg,
                      loops_per_keyframe, progress, new_from=known)
     _warn_failures(run, sequence.name)
-    trajectory = _trajectory(run, sequence)
+    trajectory = _trajectory(run, sequence, origin=anchor)
     covariances = trajectory.covariances
     covariances[:known] = known_covariances
     for i in range(known, n):  # the map frame's own uncertainty, carried along the relative pose
@@ -222,11 +225,12 @@ def _close_loops(run: "_Run", sequence: RGBDSequence, keyframes: list[int], odom
         run.mark_pruned_loops()
 
 
-def _trajectory(run: "_Run", sequence: RGBDSequence) -> Trajectory:
-    """The Trajectory of a finished run: the graph's poses, their covariances, the registration log,
-    and the colour cameras' offsets when the run measured them."""
+def _trajectory(run: "_Run", sequence: RGBDSequence, origin: int = 0) -> Trajectory:
+    """The Trajectory of a finished run: the graph's poses, their covariances (:meth:`_Run.covariances`,
+    the systematic misregistration measured from frame `origin`), the registration log, and the colour
+    cameras' offsets when the run measured them."""
     poses = np.stack([np.asarray(node.pose, dtype=np.float64) for node in run.graph.nodes])
-    covariances = pose_graph_covariances(run.graph)
+    covariances = run.covariances(origin=origin)
     return Trajectory(
         poses=poses,
         covariances=covariances,
@@ -283,6 +287,7 @@ class _Run:
         self.steps: dict[int, np.ndarray] = {}  # frame i -> its accepted registration from frame i-1 (its own motion)
         self.residuals: list[float] = []  # point-to-plane residual RMS of the accepted odometry registrations
         self.overlaps: list[float] = []  # and their overlap
+        self.depths: list[float] = []  # and their median inlier depth (m)
         for j in range(1, len(self.poses)):  # known poses: pinned to frame 0 (the optimisation's fixed node)
             self.add_edge(j, 0, np.linalg.inv(self.poses[0]) @ self.poses[j], PINNED_VARIANCE * np.eye(6))
         limits = np.array([np.radians(options.max_rotation_deg)] * 3 + [options.max_translation_m] * 3)
@@ -415,6 +420,7 @@ class _Run:
         else:
             self.residuals.append(result.residual_rms)
             self.overlaps.append(result.overlap)
+            self.depths.append(result.depth)
         self.registered.append(i)
         pose = self.poses[source] @ np.linalg.inv(result.transformation)
         spread = self.disagreement(pose, source, result.transformation, passed)
@@ -505,6 +511,23 @@ class _Run:
         for k, e in enumerate(self.edges):
             if e.kind == "loop" and e.success and (e.source, e.target) not in kept:
                 self.edges[k] = dataclasses.replace(e, success=False, message="pruned by global optimisation")
+
+    def covariances(self, nodes=None, origin: int = 0) -> np.ndarray:
+        """(N, 6, 6) covariances of the graph's poses (nodes: only these, the others zero): the pose
+        graph's marginals (:func:`pose_graph_covariances`, frame 0 fixed) plus the systematic
+        misregistration (OdometryOptions.misregistration_systematic) of each frame's motion from frame
+        `origin` (:func:`motion_rad` at the accepted registrations' median depth), an error common to
+        the registrations that the graph, which takes them as independent, cannot see."""
+        covariances = pose_graph_covariances(self.graph, nodes=nodes)
+        per_motion = self.options.misregistration_systematic
+        if per_motion == 0 or not self.depths:
+            return covariances
+        depth = float(np.median(self.depths))
+        from_origin = np.linalg.inv(np.asarray(self.graph.nodes[origin].pose))
+        for i in range(len(self.graph.nodes)) if nodes is None else nodes:
+            rad = per_motion * motion_rad(from_origin @ np.asarray(self.graph.nodes[i].pose), depth)
+            covariances[i] += misregistration_covariance(rad, depth)
+        return covariances
 
     def add_edge(self, source: int, target: int, transformation: np.ndarray, covariance: np.ndarray,
                  uncertain: bool = False) -> None:
