@@ -92,7 +92,7 @@ def test_misregistration_floor_grows_with_the_motion(room):
     np.testing.assert_allclose(np.diag(one_moving.covariance - without.covariance)[:3], rad**2)
 
 
-@pytest.mark.parametrize("name", ["misregistration_rad", "misregistration_per_motion"])
+@pytest.mark.parametrize("name", ["misregistration_rad", "misregistration_per_motion", "misregistration_systematic"])
 def test_a_negative_misregistration_is_refused(name):
     with pytest.raises(InputError, match=f"{name} must be >= 0"):
         OdometryOptions(**{name: -1e-3})

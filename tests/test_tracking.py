@@ -275,6 +275,28 @@ def test_loop_closures_shrink_sample_covariances(sample, sample_trajectory):
     assert absolute_trajectory_error(chain.poses, sample.gt_poses)["rmse"] < SAMPLE_ATE_BOUND_M
 
 
+def test_the_systematic_misregistration_grows_with_the_motion_from_frame_0_whatever_the_loops(sample):
+    """OdometryOptions.misregistration_systematic adds to each pose's covariance, beyond the pose
+    graph's marginals, a rotation std of k times its motion from frame 0 (rotation angle plus
+    distance over the scene depth) about each axis and that angle times the depth along each axis,
+    with loop closures as without them (an error common to all the registrations)."""
+    k = 0.03
+    for loops in (True, False):
+        traj = track(sample, loop_closure=loops, progress=False, odometry=OdometryOptions(misregistration_systematic=k))
+        added = traj.covariances - pose_graph_covariances(traj.pose_graph)
+        np.testing.assert_allclose(added[0], 0.0, atol=1e-15)
+        variances = np.diagonal(added[1:], axis1=1, axis2=2)
+        np.testing.assert_allclose(added[1:], variances[:, :, None] * np.eye(6), atol=1e-15)  # no cross terms
+        np.testing.assert_allclose(variances[:, :3], variances[:, :1].repeat(3, 1), rtol=1e-9)
+        np.testing.assert_allclose(variances[:, 3:], variances[:, 3:4].repeat(3, 1), rtol=1e-9)
+        depth = np.sqrt(variances[:, 3] / variances[:, 0])
+        assert np.ptp(depth) < 1e-9 and 0.5 < depth[0] < 3.0  # the registrations' median depth, as the floor's
+        angle = np.linalg.norm(rotation_vector(traj.poses[1:, :3, :3]), axis=1)
+        moved = np.linalg.norm(traj.poses[1:, :3, 3], axis=1)
+        np.testing.assert_allclose(np.sqrt(variances[:, 0]), k * (angle + moved / depth), rtol=1e-9)
+        assert np.sqrt(variances[-1, 0]) > 0.2 * k  # the sample turns and moves 0.2 rad or more
+
+
 def test_keypoints_start_frames_too_far_apart_for_odometry_near_their_motion(sample):
     # frames 0 and 7 of the sample: 31 cm and 5.7 degrees apart (mocap ground truth), too far for
     # odometry from zero motion
