@@ -79,18 +79,18 @@ class OdometryOptions:
     search_all_above_deg: float = 5.0
     """See search_all_above_m (degrees)."""
 
-    misregistration_rad: float = 1.5e-3
+    misregistration_rad: float = 1e-3
     """How far (rad; translation: this angle times the median depth) a real sensor's registration
     of two frames stays off beyond what its residuals show when the camera has not moved between
     them: calibration, lens distortion. Added to every registration's covariance; 0 for a
     simulated sensor."""
-    misregistration_per_motion: float = 0.05
+    misregistration_per_motion: float = 0.02
     """What the misregistration grows by per radian of the camera's motion while it takes the two
     frames (each frame's step from its neighbour: rotation angle plus translation over the median
     depth; for consecutive frames, their registration's own motion): colour/depth timing, rolling
     shutter and motion blur leave a registration off in proportion to how fast the camera moved.
     0 for a simulated sensor."""
-    misregistration_systematic: float = 0.0
+    misregistration_systematic: float = 0.03
     """What every pose's misregistration grows by per radian of the camera's motion from the
     reference frame (rotation angle plus translation over the median depth), common to all the
     sequence's registrations (a calibration error, e.g. a depth camera whose registrations all turn
