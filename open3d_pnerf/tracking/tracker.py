@@ -24,7 +24,7 @@ PINNED_VARIANCE = 1e-10
 """Variance (rad^2, m^2) of the edges that pin known poses to frame 0 when tracking onto a map
 (:func:`track_onto`): the optimisation leaves them where they are."""
 
-LOOP_INFLATION = 4.0
+LOOP_INFLATION = 16.0
 """A loop closure's covariance is this many times its registration's: its two images already
 entered the odometry chain, so it is not an independent measurement (the error common to all
 registrations is OdometryOptions.misregistration_systematic, which no edge carries). Chosen on the
