@@ -79,7 +79,7 @@ def main() -> None:
         options = OdometryOptions(misregistration_rad=rad, misregistration_per_motion=per,
                                   misregistration_systematic=systematic)
         rows = {label: scored(seq, loops, options) for label, seq, loops in cases}
-        key = f"{rad * 1e3:g} mrad + {per:g} x motion + {systematic:g} x motion from frame 0"
+        key = f"{rad * 1e3:g} mrad + {per:g} x motion + {systematic:g} x turn from frame 0"
         report["floor"][key] = {"worst": round(worst(rows), 3), "rows": rows}
         print(f"floor {key}: worst {worst(rows):.3f}", flush=True)
         if worst(rows) < best:

@@ -91,12 +91,12 @@ class OdometryOptions:
     shutter and motion blur leave a registration off in proportion to how fast the camera moved.
     0 for a simulated sensor."""
     misregistration_systematic: float = 0.03
-    """What every pose's misregistration grows by per radian of the camera's motion from the
-    reference frame (rotation angle plus translation over the median depth), common to all the
-    sequence's registrations (a calibration error, e.g. a depth camera whose registrations all turn
-    a few percent too far or about a tilted axis): it grows with the distance moved, not with the
-    number of steps, and loop closures, measured with the same error, cannot shrink it. Added to
-    the pose covariances after the pose graph's (see track). 0 for a simulated sensor."""
+    """What every pose's misregistration grows by per radian the camera turned from the reference
+    frame (rotation std; translation: that std times the median depth), common to all the
+    sequence's registrations (a calibration error: registrations that all turn a few percent too
+    far or about a tilted axis): it grows with the turn, not with the number of steps, and loop
+    closures, measured with the same error, cannot shrink it. Added to the pose covariances after
+    the pose graph's (see track). 0 for a simulated sensor."""
 
     def without_misregistration(self) -> "OdometryOptions":
         """These options for a simulated sensor: no calibration, timing or rolling-shutter error."""

@@ -18,7 +18,7 @@ from .covariance import pose_graph_covariances
 from .odometry import FrameRegistration, OdometryOptions, PairResult
 from .posegraph import add_edge, loop_closure_candidates, optimize
 from .trajectory import Edge, Trajectory
-from .uncertainty import misregistration_covariance, motion_rad
+from .uncertainty import misregistration_covariance
 
 PINNED_VARIANCE = 1e-10
 """Variance (rad^2, m^2) of the edges that pin known poses to frame 0 when tracking onto a map
@@ -109,7 +109,7 @@ def track(
        (``odometry.misregistration_per_motion``, per radian of each frame's step from its
        neighbour); a loop closure's is LOOP_INFLATION times larger (its images are already in the
        chain). Then each pose's systematic misregistration (``odometry.misregistration_systematic``
-       per radian of its motion from frame 0), common to all registrations, so neither the chain's
+       per radian of its turn from frame 0), common to all registrations, so neither the chain's
        length nor loop closures change it.
     4. Colour cameras (``color_poses``, when the colour is registered to the depth): Open3D's
        hybrid answer for each frame from the frame before it (its intensity term dominates, so it
@@ -516,18 +516,19 @@ class _Run:
     def covariances(self, nodes=None, origin: int = 0) -> np.ndarray:
         """(N, 6, 6) covariances of the graph's poses (nodes: only these, the others zero): the pose
         graph's marginals (:func:`pose_graph_covariances`, frame 0 fixed) plus the systematic
-        misregistration (OdometryOptions.misregistration_systematic) of each frame's motion from frame
-        `origin` (:func:`motion_rad` at the accepted registrations' median depth), an error common to
-        the registrations that the graph, which takes them as independent, cannot see."""
+        misregistration (OdometryOptions.misregistration_systematic) of each frame's turn from frame
+        `origin` (rotation angle; translation: that std times the accepted registrations' median
+        depth), an error common to the registrations that the graph, which takes them as
+        independent, cannot see."""
         covariances = pose_graph_covariances(self.graph, nodes=nodes)
-        per_motion = self.options.misregistration_systematic
-        if per_motion == 0 or not self.depths:
+        per_rad = self.options.misregistration_systematic
+        if per_rad == 0 or not self.depths:
             return covariances
         depth = float(np.median(self.depths))
         from_origin = np.linalg.inv(np.asarray(self.graph.nodes[origin].pose))
         for i in range(len(self.graph.nodes)) if nodes is None else nodes:
-            rad = per_motion * motion_rad(from_origin @ np.asarray(self.graph.nodes[i].pose), depth)
-            covariances[i] += misregistration_covariance(rad, depth)
+            _, turned_deg = motion(from_origin @ np.asarray(self.graph.nodes[i].pose))
+            covariances[i] += misregistration_covariance(per_rad * np.radians(turned_deg), depth)
         return covariances
 
     def add_edge(self, source: int, target: int, transformation: np.ndarray, covariance: np.ndarray,
