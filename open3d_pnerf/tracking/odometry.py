@@ -84,7 +84,7 @@ class OdometryOptions:
     of two frames stays off beyond what its residuals show when the camera has not moved between
     them: calibration, lens distortion. Added to every registration's covariance; 0 for a
     simulated sensor."""
-    misregistration_per_motion: float = 0.02
+    misregistration_per_motion: float = 0.05
     """What the misregistration grows by per radian of the camera's motion while it takes the two
     frames (each frame's step from its neighbour: rotation angle plus translation over the median
     depth; for consecutive frames, their registration's own motion): colour/depth timing, rolling
