@@ -4,10 +4,10 @@ error, the median standard deviation the covariances claim and the z-scores' RMS
 dof of the rotation and translation blocks alone, on TUM fr1/xyz and 7-Scenes 150-199 at 640x480
 and 320x240, loop closures on and off. A diagnostic of the NEES rows of `results/tracking.md`
 (the same tracker and sequences, one run each). And how the rotation errors grow: their
-correlation with each frame's motion from frame 0 (rotation angle plus translation over the median
-depth: what a registration error common to every step, a calibration error, grows with) and with
-the square root of the frame's index (what independent step errors grow with), and the least-squares
-slope of the error against that motion (mrad per rad).
+correlation with each frame's turn from frame 0 (its rotation angle: what a registration error
+common to every step, a calibration error, grows with; OdometryOptions.misregistration_systematic)
+and with the square root of the frame's index (what independent step errors grow with), and the
+least-squares slope of the error against that turn (mrad per rad).
 
 Then the same for the steps (loop closures off): each accepted odometry edge's error against the
 ground truth's step (a left perturbation in the target camera's frame, as the edge's covariance
@@ -33,7 +33,6 @@ from bench_tracking import REAL, tracked
 from open3d_pnerf.camera import rotation_vector
 from open3d_pnerf.data import load_sequence
 from open3d_pnerf.tracking import consistency_of_errors, pose_errors
-from open3d_pnerf.tracking.uncertainty import motion_rad
 
 AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
 
@@ -57,15 +56,15 @@ def axes_of(errors: np.ndarray, covariances: np.ndarray) -> dict:
             "nees_per_dof": round(consistency_of_errors(errors, covariances)["nees_per_dof"], 3)}
 
 
-def growth(errors: np.ndarray, gt: np.ndarray, depth: float) -> dict:
+def growth(errors: np.ndarray, gt: np.ndarray) -> dict:
     """How the rotation error norms of frames 1.. (errors (M, 6)) grow: correlation with the ground
-    truth's motion from frame 0 (motion_rad at `depth`, m) and with sqrt(frame index), and the
-    slope against that motion (mrad per rad)."""
-    moved = np.array([motion_rad(np.linalg.inv(gt[0]) @ pose, depth) for pose in gt[1:]])
+    truth's turn from frame 0 (rad) and with sqrt(frame index), and the slope against that turn
+    (mrad per rad)."""
+    turned = np.linalg.norm(rotation_vector(np.linalg.inv(gt[0])[:3, :3] @ gt[1:, :3, :3]), axis=1)
     size = np.linalg.norm(errors[:, :3], axis=1)
-    return {"corr(motion)": round(float(np.corrcoef(moved, size)[0, 1]), 2),
+    return {"corr(turn)": round(float(np.corrcoef(turned, size)[0, 1]), 2),
             "corr(sqrt steps)": round(float(np.corrcoef(np.sqrt(np.arange(1, len(size) + 1)), size)[0, 1]), 2),
-            "slope (mrad/rad)": round(float(1000 * moved @ size / (moved @ moved)), 1)}
+            "slope (mrad/rad)": round(float(1000 * turned @ size / (turned @ turned)), 1)}
 
 
 def step_errors(traj, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,15 +96,15 @@ def run() -> dict:
     for name, path in REAL.items():
         for scale in (1.0, 0.5):
             seq = load_sequence(path).at_scale(scale)
-            depth = np.median(np.concatenate([seq[i].depth[seq[i].depth > 0] for i in range(0, len(seq), 5)]))
             for loops in (True, False):
                 traj, _, _ = tracked(seq, loops)
                 errors = pose_errors(traj.poses, seq.gt_poses)[1:]
                 key = f"{name} {seq.intrinsic.width}x{seq.intrinsic.height} {'loops' if loops else 'odometry only'}"
-                out[key] = {**axes_of(errors, traj.covariances[1:]), "growth": growth(errors, seq.gt_poses, depth)}
+                out[key] = {**axes_of(errors, traj.covariances[1:]), "growth": growth(errors, seq.gt_poses)}
                 print(key, out[key], flush=True)
                 if not loops:
                     e, c = step_errors(traj, seq.gt_poses)
+                    depth = np.median(np.concatenate([seq[i].depth[seq[i].depth > 0] for i in range(0, len(seq), 5)]))
                     steps[key] = {**axes_of(e, c), **coupling(e), "median depth (m)": round(float(depth), 2)}
                     print(key, "steps", steps[key], flush=True)
     return out, steps
@@ -120,12 +119,12 @@ def markdown(report: dict) -> str:
              "| --- |" + " --- |" * (len(AXES) + 1)]
     lines += [f"| {key} | " + " | ".join(cells(r)) + " |" for key, r in report["runs"].items()]
     lines += ["", "## How the rotation errors grow", "",
-              "The rotation error's norm per frame: its correlation with the motion from frame 0 (rotation angle + "
-              "translation / median depth; a registration error common to every step grows with it) and with the square "
-              "root of the frame's index (independent step errors), and its slope against that motion (mrad per rad).",
-              "", "| sequence, setting | corr with motion | corr with sqrt(steps) | slope mrad/rad |",
+              "The rotation error's norm per frame: its correlation with the turn from frame 0 (rotation angle; a "
+              "registration error common to every step grows with it) and with the square root of the frame's index "
+              "(independent step errors), and its slope against that turn (mrad per rad).",
+              "", "| sequence, setting | corr with turn | corr with sqrt(steps) | slope mrad/rad |",
               "| --- | --- | --- | --- |"]
-    lines += [f"| {key} | {r['growth']['corr(motion)']} | {r['growth']['corr(sqrt steps)']} | "
+    lines += [f"| {key} | {r['growth']['corr(turn)']} | {r['growth']['corr(sqrt steps)']} | "
               f"{r['growth']['slope (mrad/rad)']} |" for key, r in report["runs"].items() if "growth" in r]
     lines += ["", "## Steps: the odometry edges against the ground truth's steps (loop closures off)", "",
               "Per axis as above, the NEES per dof of the rotation block, the translation block and the whole, then "
