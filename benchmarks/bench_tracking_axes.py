@@ -14,7 +14,7 @@ ground truth's step (a left perturbation in the target camera's frame, as the ed
 is), and how its rotation and translation errors go together: the correlation and slope (m) of the
 translation along x against the rotation about y, and along y against x (a turn about a point at
 depth d in front of the camera moves it by (-d ry, d rx, 0)), beside the frames' median depth.
-About 2 minutes; needs the shared data.
+About a minute; needs the shared data.
 
     python benchmarks/bench_tracking_axes.py
 

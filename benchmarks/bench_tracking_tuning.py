@@ -17,7 +17,7 @@ constants); every other setting is the default.
 
     python benchmarks/bench_tracking_tuning.py [--name tracking_tuning]
 
-Writes benchmarks/results/<name>.json and .md, with the run's duration (about 5 minutes alone on 2 cores).
+Writes benchmarks/results/<name>.json and .md, with the run's duration (about 10 minutes alone on 2 cores).
 """
 
 from __future__ import annotations
@@ -80,10 +80,11 @@ def main() -> None:
                                   misregistration_systematic=systematic)
         rows = {label: scored(seq, loops, options) for label, seq, loops in cases}
         key = f"{rad * 1e3:g} mrad + {per:g} x motion + {systematic:g} x turn from frame 0"
-        report["floor"][key] = {"worst": round(worst(rows), 3), "rows": rows}
-        print(f"floor {key}: worst {worst(rows):.3f}", flush=True)
-        if worst(rows) < best:
-            chosen, best = options, worst(rows)
+        score = worst(rows)
+        report["floor"][key] = {"worst": round(score, 3), "rows": rows}
+        print(f"floor {key}: worst {score:.3f}", flush=True)
+        if score < best:
+            chosen, best = options, score
     report["chosen_floor"] = {name: getattr(chosen, name) for name in
                               ("misregistration_rad", "misregistration_per_motion", "misregistration_systematic")}
     default_inflation = tracker.LOOP_INFLATION

@@ -28,7 +28,7 @@ LOOP_INFLATION = 16.0
 """A loop closure's covariance is this many times its registration's: its two images already
 entered the odometry chain, so it is not an independent measurement (the error common to all
 registrations is OdometryOptions.misregistration_systematic, which no edge carries). Chosen on the
-tuning halves (benchmarks/README.md)."""
+tuning halves, with 4 rejected by the synthetic Monte-Carlo draws (benchmarks/README.md)."""
 
 
 @dataclasses.dataclass
