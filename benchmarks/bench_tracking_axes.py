@@ -28,10 +28,9 @@ import warnings
 
 import numpy as np
 from bench_suite import machine, write_result
-from bench_tracking import REAL, tracked
+from bench_tracking import REAL, real_sequence, tracked
 
 from open3d_pnerf.camera import rotation_vector
-from open3d_pnerf.data import load_sequence
 from open3d_pnerf.tracking import consistency_of_errors, pose_errors
 
 AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -93,9 +92,9 @@ def coupling(errors: np.ndarray) -> dict:
 
 def run() -> dict:
     out, steps = {}, {}
-    for name, path in REAL.items():
+    for name in REAL:
         for scale in (1.0, 0.5):
-            seq = load_sequence(path).at_scale(scale)
+            seq = real_sequence(name).at_scale(scale)
             for loops in (True, False):
                 traj, _, _ = tracked(seq, loops)
                 errors = pose_errors(traj.poses, seq.gt_poses)[1:]

@@ -2,6 +2,9 @@
 frames 0-15 and 7-Scenes 150-174, at 640x480 and 320x240, loop closures on and off (the second
 halves, which bench_tracking.py reports, are not looked at here).
 
+0. the ground truth's time offset on TUM fr1/xyz 0-15 (bench_tracking.GT_TIME_OFFSET): the RMS
+   rotation error of the odometry steps (640x480, loop closures off) against the ground truth
+   read at each offset of a grid; the choice is the smallest, and 1-2 score against it;
 1. the misregistration floor (OdometryOptions.misregistration_rad, misregistration_per_motion,
    misregistration_systematic): NEES per dof and per-axis z-score std of the poses against the
    ground truth in the 8 settings for a grid of (rad, per motion, systematic); the choice is the
@@ -27,16 +30,18 @@ import time
 import warnings
 
 import numpy as np
-from bench_suite import SHARED, machine, write_result
+from bench_suite import machine, write_result
+from bench_tracking import REAL
+from bench_tracking_axes import step_errors
 
 from open3d_pnerf.data import load_sequence
 from open3d_pnerf.tracking import (OdometryOptions, absolute_trajectory_error, consistency_of_errors, pose_errors,
                                    track, tracker, uncertainty)
 
-HALVES = {"TUM fr1/xyz 0-15": (SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz", range(0, 16)),
-          "7-Scenes 150-174": (SHARED / "7scenes_redkitchen" / "frames_150-199", range(0, 25))}
-FLOOR_GRID = [(rad, per, systematic) for rad in (1e-3, 1.5e-3, 2e-3) for per in (0.0, 0.02, 0.05)
-              for systematic in (0.0, 0.01, 0.02, 0.03)]
+HALVES = {"TUM fr1/xyz 0-15": ("tum_fr1_xyz", range(0, 16)), "7-Scenes 150-174": ("7scenes_150-199", range(0, 25))}
+OFFSET_GRID = np.round(np.arange(-0.06, 0.0151, 0.005), 3)
+FLOOR_GRID = [(rad, per, systematic) for rad in (0.5e-3, 1e-3, 1.5e-3) for per in (0.0, 0.02, 0.05)
+              for systematic in (0.01, 0.02, 0.03, 0.04)]
 LOOP_GRID = (4.0, 9.0, 16.0, 25.0, 36.0)
 STOP_GRID = (0.1, 0.15)
 
@@ -53,14 +58,30 @@ def scored(seq, loops: bool, options: OdometryOptions) -> dict:
             "ate_mm": round(1000 * absolute_trajectory_error(traj.poses, seq.gt_poses)["rmse"], 2)}
 
 
-def settings():
-    """(label, sequence, loops) of the tuning halves' settings."""
-    for name, (path, frames) in HALVES.items():
-        half = load_sequence(path).select(frames)
+def time_offset() -> tuple[float, dict]:
+    """The ground-truth time offset (s) of TUM fr1/xyz 0-15 whose steps agree best with the tracked
+    ones' rotations, and the RMS rotation step error (mrad) at each offset of OFFSET_GRID."""
+    name, frames = HALVES["TUM fr1/xyz 0-15"]
+    seq = load_sequence(REAL[name]).select(frames)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        traj = track(seq, loop_closure=False, progress=False)
+    rms = {}
+    for offset in OFFSET_GRID:
+        gt = load_sequence(REAL[name], gt_time_offset=float(offset)).select(frames).gt_poses
+        errors, _ = step_errors(traj, gt)
+        rms[f"{offset + 0:g}"] = round(float(1000 * np.sqrt((errors[:, :3] ** 2).sum(1).mean())), 2)
+    return float(min(OFFSET_GRID, key=lambda o: rms[f"{o + 0:g}"])), rms
+
+
+def settings(offsets: dict):
+    """(label, sequence, loops) of the tuning halves' settings, the ground truth read at `offsets` (s, by name)."""
+    for label, (name, frames) in HALVES.items():
+        half = load_sequence(REAL[name], gt_time_offset=offsets.get(name, 0.0)).select(frames)
         for scale in (1.0, 0.5):
             seq = half if scale == 1 else half.at_scale(scale)
             for loops in (True, False):
-                yield f"{name} {seq.image_size[1]}x{seq.image_size[0]} {'loops' if loops else 'odometry'}", seq, loops
+                yield f"{label} {seq.image_size[1]}x{seq.image_size[0]} {'loops' if loops else 'odometry'}", seq, loops
 
 
 def worst(rows: dict) -> float:
@@ -73,7 +94,10 @@ def main() -> None:
     args = ap.parse_args()
     start = time.perf_counter()
     report = {"machine": machine(), "floor": {}, "loop_inflation": {}, "stop_fraction": {}}
-    cases = list(settings())
+    offset, report["time_offset"] = time_offset()
+    report["chosen_time_offset"] = offset
+    print(f"ground-truth time offset {offset:g} s: {report['time_offset']}", flush=True)
+    cases = list(settings({"tum_fr1_xyz": offset}))
     chosen, best = None, np.inf
     for rad, per, systematic in FLOOR_GRID:
         options = OdometryOptions(misregistration_rad=rad, misregistration_per_motion=per,
@@ -97,7 +121,7 @@ def main() -> None:
     finally:
         tracker.LOOP_INFLATION = default_inflation
     default_stop = uncertainty.STOP_FRACTION
-    seq = load_sequence(SHARED / "7scenes_redkitchen" / "frames_150-199").at_scale(0.5)
+    seq = load_sequence(REAL["7scenes_150-199"]).at_scale(0.5)
     try:
         for fraction in STOP_GRID:
             uncertainty.STOP_FRACTION = fraction
@@ -116,6 +140,11 @@ def markdown(report: dict) -> str:
     labels = list(next(iter(report["floor"].values()))["rows"])
     lines = [f"# Tracking constants on the tuning halves ({report['minutes']} min, "
              f"`python benchmarks/bench_tracking_tuning.py`; {report['machine']})", "",
+             "## The ground truth's time offset: TUM fr1/xyz 0-15, 640x480, odometry only: RMS rotation error of the "
+             f"steps (mrad) with the ground truth read that many seconds off; chosen: {report['chosen_time_offset']:g} s",
+             "", "| offset s | " + " | ".join(report["time_offset"]) + " |",
+             "|" + " --- |" * (len(report["time_offset"]) + 1),
+             "| step rotation RMS mrad | " + " | ".join(str(v) for v in report["time_offset"].values()) + " |", "",
              "## Misregistration floor: NEES per dof / z std per setting (worst: max of |log NEES|, 2 |log z std|)", "",
              "| floor | worst | " + " | ".join(labels) + " |", "|" + " --- |" * (len(labels) + 2)]
     for key, r in sorted(report["floor"].items(), key=lambda kv: kv[1]["worst"]):

@@ -122,6 +122,24 @@ def test_tum_groundtruth_is_interpolated_at_depth_timestamps(tum_dir):
         np.testing.assert_array_equal(pose[3], [0, 0, 0, 1])
 
 
+def test_tum_groundtruth_time_offset_reads_the_poses_that_many_seconds_away(tum_dir):
+    seq = load_sequence(tum_dir, gt_time_offset=-0.25)
+    assert seq.timestamps.tolist() == [1.004, 1.512, 1.996]  # the frames keep their own time
+    # read at 0.754, 1.262, 1.746 between gt 0.5 and 2.5: fractions (t - 0.25 - 0.5) / 2
+    for pose, s in zip(seq.gt_poses, [0.127, 0.381, 0.623]):
+        np.testing.assert_allclose(pose[:3, 3], s * np.array([1.0, 2.0, 3.0]), atol=1e-9)
+        np.testing.assert_allclose(pose[:3, :3], Rotation.from_rotvec([0, 0, s * np.pi / 2]).as_matrix(), atol=1e-7)
+    for bad in (float("nan"), 2.0, "0.03", True):
+        with pytest.raises(InputError, match="gt_time_offset"):
+            load_sequence(tum_dir, gt_time_offset=bad)
+
+
+def test_a_ground_truth_time_offset_does_not_apply_to_a_folder_without_timestamps(tmp_path):
+    root, _ = make_seven_scenes(tmp_path / "kitchen")
+    with pytest.raises(InputError, match="gt_time_offset do not apply"):
+        load_sequence(root, gt_time_offset=0.01)
+
+
 def test_tum_groundtruth_starting_just_after_the_first_frame_is_kept(tmp_path):
     """TUM fr2/desk: the first frame is 19 microseconds before the first groundtruth line.
     Within TUM's 20 ms tolerance the frame takes the first line's pose; no ground truth is lost."""

@@ -61,6 +61,7 @@ def load_sequence(
     image_scale: float = 1.0,
     color_intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None,
     color_extrinsic: np.ndarray | None = None,
+    gt_time_offset: float = 0.0,
 ) -> RGBDSequence:
     """Read a dataset folder, detecting its layout (see the README's table of formats).
 
@@ -71,6 +72,8 @@ def load_sequence(
     depth camera's).
     depth_trunc (m, 0 = none) drops farther depth. stride keeps every stride-th frame,
     max_frames caps the count after striding. image_scale in (0, 1] resizes frames on load.
+    gt_time_offset (s, TUM folders) is added to the frames' timestamps where the ground truth is
+    read, for a motion capture whose clock disagrees with the camera's (TUM's ``--offset``).
     An image-only folder (e.g. LLFF) gives a sequence without depth that carries its structure
     from motion (``sequence.sfm``).
     """
@@ -89,9 +92,13 @@ def load_sequence(
         raise InputError(f"depth_scale must be > 0 (raw units per metre), got {depth_scale!r}")
     if intrinsic is not None:
         check_intrinsic(intrinsic)
+    if isinstance(gt_time_offset, bool) or not isinstance(gt_time_offset, (int, float)) \
+            or not abs(gt_time_offset) < 1.0:
+        raise InputError(f"gt_time_offset must be a number of seconds under 1 in size, got {gt_time_offset!r}")
     fmt = detect_format(path)
     given = {"intrinsic": intrinsic, "depth_scale": depth_scale, "color_intrinsic": color_intrinsic,
-             "color_extrinsic": color_extrinsic, "depth_trunc": depth_trunc or None}
+             "color_extrinsic": color_extrinsic, "depth_trunc": depth_trunc or None,
+             "gt_time_offset": gt_time_offset or None}
     given = {k: v for k, v in given.items() if v is not None}
     unused = [k for k in given if k not in fmt.options]
     if unused:
@@ -120,7 +127,7 @@ def _register_builtin_formats() -> None:
                llff, frozenset()),
         Format("nerfstudio", f"{TRANSFORMS} + images, optional depth", is_nerfstudio, read_nerfstudio,
                frozenset({"intrinsic", "depth_scale", "depth_trunc"})),
-        Format("TUM RGB-D", "rgb.txt + depth.txt", is_tum, read_tum),
+        Format("TUM RGB-D", "rgb.txt + depth.txt", is_tum, read_tum, RGBD_OPTIONS | {"gt_time_offset"}),
         Format("7-Scenes", "frame-XXXXXX.color.png/.depth.png", is_seven_scenes, read_seven_scenes),
         Format("Open3D/Redwood", "color/ + depth/", is_open3d_folder, read_open3d_folder),
     ):

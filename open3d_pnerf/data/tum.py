@@ -30,7 +30,8 @@ def is_tum(path: Path) -> bool:
 
 
 def read_tum(path: Path, intrinsic=None, depth_scale: float | None = None, depth_trunc: float = 0.0,
-             color_intrinsic=None, image_scale: float = 1.0, color_extrinsic=None) -> RGBDSequence:
+             color_intrinsic=None, image_scale: float = 1.0, color_extrinsic=None,
+             gt_time_offset: float = 0.0) -> RGBDSequence:
     """A TUM RGB-D folder: colour and depth associated one to one within TUM_MAX_DT, the
     intrinsic by the folder's Kinect name, ground truth slerped at the depth timestamps.
 
@@ -39,7 +40,12 @@ def read_tum(path: Path, intrinsic=None, depth_scale: float | None = None, depth
     are up to 20 ms apart (about 6 mm at fr1/xyz's speed; with the GT at the colour time, tracked
     consecutive-frame translations disagreed with it by 5.6 mm RMS along the optical axis, at the
     depth time by 0.8 mm). ``timestamps`` are the depth's too, so that a trajectory written with
-    them (:func:`~open3d_pnerf.write_tum_trajectory`) reads back as the same poses."""
+    them (:func:`~open3d_pnerf.write_tum_trajectory`) reads back as the same poses.
+
+    gt_time_offset (s) is added to the depth timestamps where the ground truth is read, as the
+    ``--offset`` of TUM's evaluation tools, for a motion capture whose clock disagrees with the
+    camera's (fr1/xyz's rotations agree with tracked ones best about 25 ms early:
+    benchmarks/results/tracking_tuning.md)."""
     rgb_t, rgb_f = _timestamped_files(path / "rgb.txt")
     dep_t, dep_f = _timestamped_files(path / "depth.txt")
     pairs = associate(rgb_t, dep_t, TUM_MAX_DT)
@@ -59,7 +65,7 @@ def read_tum(path: Path, intrinsic=None, depth_scale: float | None = None, depth
     poses = None
     gt = path / "groundtruth.txt"
     if gt.is_file():
-        poses = _interpolate_tum_groundtruth(gt, stamps)
+        poses = _interpolate_tum_groundtruth(gt, stamps + gt_time_offset)
     if intrinsic is None:
         known = [k for k in TUM_INTRINSICS if k in path.name]
         params = TUM_INTRINSICS[known[0]] if known else PRIMESENSE_DEFAULT
