@@ -41,7 +41,7 @@ from open3d_pnerf.tracking import (OdometryOptions, absolute_trajectory_error, c
 HALVES = {"TUM fr1/xyz 0-15": ("tum_fr1_xyz", range(0, 16)), "7-Scenes 150-174": ("7scenes_150-199", range(0, 25))}
 OFFSET_GRID = np.round(np.arange(-0.06, 0.0151, 0.005), 3)
 FLOOR_GRID = [(rad, per, systematic) for rad in (0.5e-3, 1e-3, 1.5e-3) for per in (0.0, 0.02, 0.05)
-              for systematic in (0.01, 0.02, 0.03, 0.04)]
+              for systematic in (0.02, 0.03, 0.04, 0.05)]
 LOOP_GRID = (4.0, 9.0, 16.0, 25.0, 36.0)
 STOP_GRID = (0.1, 0.15)
 
