@@ -59,10 +59,10 @@ def test_refine_recovers_a_known_shift_and_fit_scores_it(room):
     assert bad.residual_rms > 2 * good.residual_rms
 
 
-def test_misregistration_floor_grows_with_the_motion(room):
-    """The floor's rotation std is misregistration_rad + misregistration_per_motion * motion, the
-    motion being the rotation angle plus the translation over the depth; the residuals' part is
-    the same whatever the floor."""
+def test_misregistration_floor_grows_with_the_square_of_the_motion(room):
+    """The floor's rotation std is misregistration_rad + misregistration_per_squared_motion * m^2, m
+    the motion: the rotation angle plus the translation over the depth; the residuals' part is the
+    same whatever the floor."""
     _, intrinsic, depth = room
     K = intrinsic_matrix(intrinsic)
     frame = DepthFrame.of(depth, K, 10.0)
@@ -72,27 +72,30 @@ def test_misregistration_floor_grows_with_the_motion(room):
     moved[:3, 3] = [0.0, 0.0, 0.05]
     assert motion_rad(turned, 2.0) == pytest.approx(0.02)
     assert motion_rad(moved, 2.0) == pytest.approx(0.025)
-    a, k = 1.5e-3, 0.05
+    a, k = 1.5e-3, 2.0
     without = fit(frame, frame, turned, 0.03)
     constant = fit(frame, frame, turned, 0.03, a)
     growing = fit(frame, frame, turned, 0.03, a, k)
     np.testing.assert_allclose(np.diag(constant.covariance - without.covariance)[:3], a**2)
-    np.testing.assert_allclose(np.diag(growing.covariance - without.covariance)[:3], (a + k * 0.02) ** 2)
-    depth_ratio = np.diag(growing.covariance - without.covariance)[3:] / (a + k * 0.02) ** 2  # median depth^2
+    rad = a + k * 0.02**2  # 2.3 mrad
+    np.testing.assert_allclose(np.diag(growing.covariance - without.covariance)[:3], rad**2)
+    depth_ratio = np.diag(growing.covariance - without.covariance)[3:] / rad**2  # median depth^2
     assert np.ptp(depth_ratio) < 1e-9 and np.sqrt(depth_ratio[0]) == pytest.approx(growing.depth)
     np.testing.assert_array_equal(growing.residual_covariance, without.residual_covariance)
-    np.testing.assert_allclose(growing.residual_covariance + misregistration_covariance(a + k * 0.02, growing.depth),
+    np.testing.assert_allclose(growing.residual_covariance + misregistration_covariance(rad, growing.depth),
                                growing.covariance, rtol=1e-12, atol=0)
     # frames that did not move while they were taken (a loop closure of two still keyframes): the
-    # constant floor alone, whatever the baseline between them; one moving 50 mm at 2 m: the mean of the two steps
+    # constant floor alone, whatever the baseline between them; one moving 50 mm at 2 m: the square of
+    # the two steps' mean
     still = fit(frame, frame, turned, 0.03, a, k, frame_steps=[np.eye(4), np.eye(4)])
     np.testing.assert_allclose(np.diag(still.covariance - without.covariance)[:3], a**2)
     one_moving = fit(frame, frame, turned, 0.03, a, k, frame_steps=[np.eye(4), moved])
-    rad = a + k * 0.5 * (0.05 / one_moving.depth)
+    rad = a + k * (0.5 * 0.05 / one_moving.depth) ** 2
     np.testing.assert_allclose(np.diag(one_moving.covariance - without.covariance)[:3], rad**2)
 
 
-@pytest.mark.parametrize("name", ["misregistration_rad", "misregistration_per_motion", "misregistration_systematic"])
+@pytest.mark.parametrize("name", ["misregistration_rad", "misregistration_per_squared_motion",
+                                  "misregistration_systematic"])
 def test_a_negative_misregistration_is_refused(name):
     with pytest.raises(InputError, match=f"{name} must be >= 0"):
         OdometryOptions(**{name: -1e-3})

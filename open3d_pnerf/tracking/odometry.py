@@ -84,13 +84,16 @@ class OdometryOptions:
     of two frames stays off beyond what its residuals show when the camera has not moved between
     them: calibration, lens distortion. Added to every registration's covariance; 0 for a
     simulated sensor."""
-    misregistration_per_motion: float = 0.05
-    """What the misregistration grows by per radian of the camera's motion while it takes the two
-    frames (each frame's step from its neighbour: rotation angle plus translation over the median
-    depth; for consecutive frames, their registration's own motion): colour/depth timing, rolling
-    shutter and motion blur leave a registration off in proportion to how fast the camera moved.
-    0 for a simulated sensor."""
-    misregistration_systematic: float = 0.03
+    misregistration_per_squared_motion: float = 0.25
+    """What the misregistration grows by per squared radian of the camera's motion while it takes
+    the two frames (m: each frame's step from its neighbour, rotation angle plus translation over
+    the median depth, averaged over the two; for consecutive frames, their registration's own
+    motion): k m^2 rad. Motion blur, rolling shutter and wrong minima leave a registration off
+    more than in proportion to how far the camera moved: TUM fr1/xyz's small steps fit best
+    without a term linear in m, 7-Scenes every 10th frame's 68 mm / 3.7 degree steps leave frames
+    wrong beyond their covariance without one (benchmarks/results/tracking_tuning.md). 0 for a
+    simulated sensor."""
+    misregistration_systematic: float = 0.04
     """What every pose's misregistration grows by per radian the camera turned from the reference
     frame (rotation std; translation: that std times the median depth), common to all the
     sequence's registrations (a calibration error: registrations that all turn a few percent too
@@ -100,7 +103,7 @@ class OdometryOptions:
 
     def without_misregistration(self) -> "OdometryOptions":
         """These options for a simulated sensor: no calibration, timing or rolling-shutter error."""
-        return dataclasses.replace(self, misregistration_rad=0.0, misregistration_per_motion=0.0,
+        return dataclasses.replace(self, misregistration_rad=0.0, misregistration_per_squared_motion=0.0,
                                    misregistration_systematic=0.0)
 
     def criteria(self) -> list:
@@ -116,7 +119,7 @@ class OdometryOptions:
                      "search_all_above_m", "search_all_above_deg"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("misregistration_rad", "misregistration_per_motion", "misregistration_systematic"):
+        for name in ("misregistration_rad", "misregistration_per_squared_motion", "misregistration_systematic"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 0 <= self.min_overlap <= 1:
@@ -285,7 +288,7 @@ class FrameRegistration:
         finally:
             self._start_prefetching()
         quality = refine(src.geometry, tgt.geometry, found, options.inlier_distance_m, options.misregistration_rad,
-                         options.misregistration_per_motion, frame_steps=frame_steps)
+                         options.misregistration_per_squared_motion, frame_steps=frame_steps)
         transformation = quality.transformation
         moved_m, turned_deg = motion(np.linalg.inv(init if prior is None else prior) @ transformation)
         message = ""

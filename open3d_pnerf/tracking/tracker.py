@@ -105,9 +105,9 @@ def track(
        it neither depends on the processing resolution nor counts correlated pixels as
        independent), plus a misregistration floor for what a real sensor's calibration leaves
        (``odometry.misregistration_rad``) and what grows with the camera's motion while it takes
-       the two frames, colour/depth timing and rolling shutter
-       (``odometry.misregistration_per_motion``, per radian of each frame's step from its
-       neighbour); a loop closure's is LOOP_INFLATION times larger (its images are already in the
+       the two frames, motion blur, rolling shutter and wrong minima
+       (``odometry.misregistration_per_squared_motion``, per squared radian of each frame's step
+       from its neighbour); a loop closure's is LOOP_INFLATION times larger (its images are already in the
        chain). Then each pose's systematic misregistration (``odometry.misregistration_systematic``
        per radian of its turn from frame 0), common to all registrations, so neither the chain's
        length nor loop closures change it.

@@ -271,7 +271,7 @@ def _residuals(source: DepthFrame, target: DepthFrame, transformation: np.ndarra
 
 
 def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
-           misregistration_rad: float = 0.0, misregistration_per_motion: float = 0.0, iterations: int = 6,
+           misregistration_rad: float = 0.0, misregistration_per_squared_motion: float = 0.0, iterations: int = 6,
            frame_steps: list[np.ndarray] | None = None) -> Fit:
     """`transformation` (4, 4, source camera -> target camera) refined by Newton steps of the
     weighted point-to-plane alignment both ways with sub-pixel association (the root of
@@ -287,7 +287,7 @@ def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, i
     previous = None
     for k in range(iterations + 1):
         res = _residuals(source, target, T, inlier_distance)
-        result = _fit(T, res, misregistration_rad, misregistration_per_motion, frame_steps)
+        result = _fit(T, res, misregistration_rad, misregistration_per_squared_motion, frame_steps)
         if k == iterations or not result.usable:
             break
         step = -result.bread @ (res["J"] @ (res["w"] * res["r"]))
@@ -302,12 +302,12 @@ def refine(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, i
 
 
 def fit(source: DepthFrame, target: DepthFrame, transformation: np.ndarray, inlier_distance: float,
-        misregistration_rad: float = 0.0, misregistration_per_motion: float = 0.0,
+        misregistration_rad: float = 0.0, misregistration_per_squared_motion: float = 0.0,
         frame_steps: list[np.ndarray] | None = None) -> Fit:
     """The :class:`Fit` of `transformation` (4, 4, source camera -> target camera) between two
     frames, as it is (:func:`refine` without a step)."""
-    return refine(source, target, transformation, inlier_distance, misregistration_rad, misregistration_per_motion,
-                  iterations=0, frame_steps=frame_steps)
+    return refine(source, target, transformation, inlier_distance, misregistration_rad,
+                  misregistration_per_squared_motion, iterations=0, frame_steps=frame_steps)
 
 
 def misregistration_covariance(rad: float, depth: float) -> np.ndarray:
@@ -323,7 +323,7 @@ def motion_rad(transformation: np.ndarray, depth: float) -> float:
     return float(np.radians(turned_deg) + moved_m / depth)
 
 
-def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misregistration_per_motion: float,
+def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misregistration_per_squared_motion: float,
          frame_steps: list[np.ndarray] | None) -> Fit:
     """The Fit of `transformation` from its residuals (:func:`_residuals`).
 
@@ -331,10 +331,10 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misr
     sum_i w_i J_i r_i = 0 (what :func:`refine` solves), A^-1 B A^-T with A = sum_i w_i J_i G_i^T
     (G_i: the residual's derivative with m following the interpolated surface; J_i alone would
     take the noisy normals for the surface's slope), plus the misregistration floor: rotation
-    std `misregistration_rad + misregistration_per_motion * m` about each axis and translation
-    std that angle times the median inlier depth (what a real sensor's calibration leaves, and
-    its colour/depth timing and rolling shutter, which grow with the camera's motion while it
-    takes the frames: no residual shows them). m is the mean :func:`motion_rad` of the relative
+    std `misregistration_rad + misregistration_per_squared_motion * m^2` about each axis and
+    translation std that angle times the median inlier depth (what a real sensor's calibration
+    leaves, and its motion blur, rolling shutter and wrong minima, which grow faster than the
+    camera's motion while it takes the frames: no residual shows them). m is the mean :func:`motion_rad` of the relative
     poses in `frame_steps` (each frame's step from the frame before it: for frames that are not
     consecutive, a loop closure), or of `transformation` itself (None or empty: the frames' step
     when they are consecutive, a bound when they are not)."""
@@ -357,6 +357,7 @@ def _fit(transformation: np.ndarray, res: dict, misregistration_rad: float, misr
     residual_covariance = 0.5 * (residual_covariance + residual_covariance.T)
     depth = float(np.median(res["depth"]))
     steps = frame_steps or [transformation]
-    rad = misregistration_rad + misregistration_per_motion * float(np.mean([motion_rad(T, depth) for T in steps]))
+    motion = float(np.mean([motion_rad(T, depth) for T in steps]))
+    rad = misregistration_rad + misregistration_per_squared_motion * motion**2
     covariance = residual_covariance + misregistration_covariance(rad, depth)
     return Fit(transformation, overlap, rms, inliers, covariance, bread, residual_covariance, depth)
