@@ -14,7 +14,10 @@ ground truth's step (a left perturbation in the target camera's frame, as the ed
 is), and how its rotation and translation errors go together: the correlation and slope (m) of the
 translation along x against the rotation about y, and along y against x (a turn about a point at
 depth d in front of the camera moves it by (-d ry, d rx, 0)), beside the frames' median depth.
-About a minute; needs the shared data.
+And the ground truth's time offset seen by a second tracker: Open3D's point-to-plane ICP (depth
+alone, 1 cm voxels) between consecutive frames of TUM fr1/xyz's report half (16-31; the offset was
+chosen with this tracker on 0-15), the RMS of its steps' rotation errors against the ground truth
+read at each offset. About a minute; needs the shared data.
 
     python benchmarks/bench_tracking_axes.py
 
@@ -27,10 +30,13 @@ import time
 import warnings
 
 import numpy as np
+import open3d as o3d
 from bench_suite import machine, write_result
 from bench_tracking import REAL, real_sequence, tracked
+from bench_tracking_tuning import OFFSET_GRID
 
 from open3d_pnerf.camera import rotation_vector
+from open3d_pnerf.data import load_sequence
 from open3d_pnerf.tracking import consistency_of_errors, pose_errors
 
 AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -90,6 +96,29 @@ def coupling(errors: np.ndarray) -> dict:
     return out
 
 
+def icp_time_offset(frames=range(16, 32)) -> dict:
+    """RMS rotation error (mrad) of Open3D point-to-plane ICP's consecutive-frame steps on TUM
+    fr1/xyz `frames` against the ground truth read at each offset (s) of OFFSET_GRID."""
+    seq = load_sequence(REAL["tum_fr1_xyz"]).select(frames)
+    clouds = []
+    for i in range(len(seq)):
+        cloud = o3d.geometry.PointCloud.create_from_depth_image(o3d.geometry.Image(seq[i].depth), seq.intrinsic,
+                                                                depth_scale=1.0).voxel_down_sample(0.01)
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.05, max_nn=30))
+        clouds.append(cloud)
+    steps = [o3d.pipelines.registration.registration_icp(
+        a, b, 0.05, np.eye(4), o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50)).transformation
+        for a, b in zip(clouds, clouds[1:])]
+    out = {}
+    for offset in OFFSET_GRID:
+        gt = load_sequence(REAL["tum_fr1_xyz"], gt_time_offset=float(offset)).select(frames).gt_poses
+        errors = [rotation_vector((np.linalg.inv(gt[i + 1]) @ gt[i] @ np.linalg.inv(T))[:3, :3])
+                  for i, T in enumerate(steps)]
+        out[f"{offset + 0:g}"] = round(float(1000 * np.sqrt((np.array(errors) ** 2).sum(1).mean())), 2)
+    return out
+
+
 def run() -> dict:
     out, steps = {}, {}
     for name in REAL:
@@ -134,6 +163,12 @@ def markdown(report: dict) -> str:
     lines += [f"| {key} | " + " | ".join(cells(r)) + f" | {r['corr(ry,tx)']} / {r['slope tx/ry (m)']} | "
               f"{r['corr(rx,ty)']} / {r['slope ty/rx (m)']} | {r['median depth (m)']} |"
               for key, r in report["steps"].items()]
+    icp = report["icp_time_offset"]
+    lines += ["", "## The ground truth's time offset by a second tracker: Open3D point-to-plane ICP, TUM fr1/xyz 16-31",
+              "", "RMS rotation error (mrad) of its consecutive-frame steps against the ground truth read that many "
+              "seconds off (this file's other tables read it at bench_tracking.GT_TIME_OFFSET).", "",
+              "| offset s | " + " | ".join(icp) + " |", "|" + " --- |" * (len(icp) + 1),
+              "| step rotation RMS mrad | " + " | ".join(str(v) for v in icp.values()) + " |"]
     return "\n".join(lines) + "\n"
 
 
@@ -147,7 +182,7 @@ def main() -> None:
     warnings.simplefilter("ignore")  # the tracker's flagged-frame warnings: the table says more
     start = time.perf_counter()
     runs, steps = run()
-    report = {"machine": machine(), "runs": runs, "steps": steps}
+    report = {"machine": machine(), "runs": runs, "steps": steps, "icp_time_offset": icp_time_offset()}
     report["minutes"] = round((time.perf_counter() - start) / 60, 1)
     write_result("tracking_axes", report, markdown(report))
 
