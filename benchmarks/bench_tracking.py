@@ -66,6 +66,8 @@ GT_TIME_OFFSET = {"tum_fr1_xyz": -0.025}
 """Seconds added to a real sequence's frame times where its ground truth is read (load_sequence's
 gt_time_offset): fr1/xyz's motion capture agrees best with the tracked steps' rotations that much
 early. Chosen on frames 0-15 by bench_tracking_tuning.py (results/tracking_tuning.md)."""
+OFFSET_GRID = np.round(np.arange(-0.06, 0.0151, 0.005), 3)
+"""The offsets (s) that choice and bench_tracking_axes.py's check with a second tracker try."""
 EVERY10 = DATA / "7scenes_redkitchen" / "every10th_0-990"
 OUT = Path(__file__).resolve().parent / "results"
 PREVIOUS = "4dc4fa7"  # the tracker of the release e7fdb54 (4dc4fa7 only restructured it): point_noise_m = 2

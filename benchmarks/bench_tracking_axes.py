@@ -32,8 +32,7 @@ import warnings
 import numpy as np
 import open3d as o3d
 from bench_suite import machine, write_result
-from bench_tracking import REAL, real_sequence, tracked
-from bench_tracking_tuning import OFFSET_GRID
+from bench_tracking import OFFSET_GRID, REAL, real_sequence, tracked
 
 from open3d_pnerf.camera import rotation_vector
 from open3d_pnerf.data import load_sequence

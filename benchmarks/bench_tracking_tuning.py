@@ -37,7 +37,7 @@ import warnings
 
 import numpy as np
 from bench_suite import machine, write_result
-from bench_tracking import EVERY10, REAL, scores
+from bench_tracking import EVERY10, OFFSET_GRID, REAL, scores
 from bench_tracking_axes import step_errors
 
 from open3d_pnerf.data import load_sequence
@@ -45,7 +45,6 @@ from open3d_pnerf.tracking import (OdometryOptions, absolute_trajectory_error, c
                                    track, tracker, uncertainty)
 
 HALVES = {"TUM fr1/xyz 0-15": ("tum_fr1_xyz", range(0, 16)), "7-Scenes 150-174": ("7scenes_150-199", range(0, 25))}
-OFFSET_GRID = np.round(np.arange(-0.06, 0.0151, 0.005), 3)
 FLOOR_GRID = [(rad, systematic) for rad in (0.5e-3, 1e-3, 1.5e-3) for systematic in (0.02, 0.03, 0.04, 0.05)]
 MOTION_GRID = (0.0, 0.25, 0.5, 1.0)
 LOOP_GRID = (4.0, 9.0, 16.0, 25.0, 36.0)
