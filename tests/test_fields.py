@@ -628,7 +628,8 @@ def test_levels_that_are_off_change_nothing_the_field_returns(name):
 
 
 @pytest.mark.parametrize("bf16, native_here, expected", [
-    (None, True, torch.bfloat16), (None, False, torch.float32),  # the default follows the hardware
+    (None, True, torch.bfloat16), (None, False, torch.float32),  # auto follows the hardware
+    ("omitted", True, torch.bfloat16), ("omitted", False, torch.float32),  # a field's default is auto, as the config's
     (True, False, torch.bfloat16), (False, True, torch.float32),  # an explicit choice is kept
 ])
 def test_bf16_mlps_run_where_asked_and_by_default_only_where_the_device_has_them(bf16, native_here, expected,
@@ -636,8 +637,9 @@ def test_bf16_mlps_run_where_asked_and_by_default_only_where_the_device_has_them
     from open3d_pnerf.fields import fields as fields_module
 
     monkeypatch.setattr(fields_module, "native_bf16", lambda device_type: native_here)
+    chosen = {} if bf16 == "omitted" else {"bf16": bf16}
     field = HashGridField(torch.tensor([[-1.0] * 3, [1.0] * 3]), levels=2, log2_table_size=8, max_resolution=8,
-                          bf16=bf16)
+                          **chosen)
     x = torch.zeros(4, 3)
     with field.mlp_precision(x):
         assert torch.nn.functional.linear(x, torch.ones(2, 3)).dtype == expected

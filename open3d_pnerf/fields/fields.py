@@ -64,7 +64,7 @@ class Field(nn.Module):
     gradient is one dense tensor (grids), written once per step that way (see
     rendering.volume.render_rays)."""
 
-    def __init__(self, aabb: torch.Tensor, bf16: bool | None = False):
+    def __init__(self, aabb: torch.Tensor, bf16: bool | None = None):
         super().__init__()
         self.register_buffer("aabb", torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3))
         self.bf16 = bf16
@@ -127,7 +127,7 @@ class EncodedField(Field):
 
     encodes_in_one_pass = True
 
-    def __init__(self, aabb, encoding: nn.Module, hidden: int = 64, geo_features: int = 15, bf16: bool = False,
+    def __init__(self, aabb, encoding: nn.Module, hidden: int = 64, geo_features: int = 15, bf16: bool | None = None,
                  sdf: SDFConfig | None = None):
         super().__init__(aabb, bf16)
         self.encoding = encoding
@@ -252,7 +252,7 @@ class HashGridField(EncodedField):
 class VanillaNeRFField(Field):
     """The original NeRF MLP (8 x 256, skip at layer 4, PE 10/4 frequencies), as in nerf_pl."""
 
-    def __init__(self, aabb, width: int = 256, depth: int = 8, skip: int = 4, bf16: bool = False):
+    def __init__(self, aabb, width: int = 256, depth: int = 8, skip: int = 4, bf16: bool | None = None):
         super().__init__(aabb, bf16)
         self.pos_encoding = FrequencyEncoding(3, 10)
         self.dir_encoding = FrequencyEncoding(3, 4)
@@ -309,7 +309,7 @@ class HashGridConfig(Settings):
             raise ConfigError(f"config field {prefix}backend='kernel': the fused kernel cannot run here "
                               f"({native.unavailable_reason()}); use backend 'auto' or 'torch'")
 
-    def build(self, aabb, bf16: bool = False, sdf: SDFConfig | None = None) -> HashGridField:
+    def build(self, aabb, bf16: bool | None = None, sdf: SDFConfig | None = None) -> HashGridField:
         return HashGridField(aabb, self.levels, self.features, self.log2_table_size, self.max_resolution,
                              self.backend, bf16=bf16, sdf=sdf)
 
@@ -325,7 +325,7 @@ class GridConfig(Settings):
     features: int = setting(2, count(1))
     """Features per level (memory: sum R^3 * features floats, x4 with Adam)."""
 
-    def build(self, aabb, bf16: bool = False, sdf: SDFConfig | None = None) -> GridField:
+    def build(self, aabb, bf16: bool | None = None, sdf: SDFConfig | None = None) -> GridField:
         return GridField(aabb, resolutions=self.resolutions, features=self.features, bf16=bf16, sdf=sdf)
 
 
@@ -338,7 +338,7 @@ class VanillaConfig(Settings):
     depth: int = setting(8, count(5))
     """Hidden layers (a skip connection at layer 4)."""
 
-    def build(self, aabb, bf16: bool = False) -> VanillaNeRFField:
+    def build(self, aabb, bf16: bool | None = None) -> VanillaNeRFField:
         return VanillaNeRFField(aabb, width=self.width, depth=self.depth, bf16=bf16)
 
 
