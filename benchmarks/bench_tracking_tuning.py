@@ -4,7 +4,7 @@ halves, which bench_tracking.py reports, are not looked at here).
 
 0. the ground truth's time offset on TUM fr1/xyz 0-15 (bench_tracking.GT_TIME_OFFSET): the RMS
    rotation error of the odometry steps (640x480, loop closures off) against the ground truth
-   read at each offset of a grid; the choice is the smallest, and 1-2 score against it;
+   read at each offset of a grid; the choice is the smallest, and 1, 1b and 2 score against it;
 1. the misregistration floor (OdometryOptions.misregistration_rad, misregistration_systematic):
    NEES per dof and per-axis z-score std of the poses against the ground truth in the 8 settings
    for a grid of (rad, systematic), without the motion term; the choice is the pair whose worst
@@ -25,7 +25,7 @@ constants); every other setting is the default.
 
     python benchmarks/bench_tracking_tuning.py [--name tracking_tuning]
 
-Writes benchmarks/results/<name>.json and .md, with the run's duration (about 13 minutes alone on 2 cores).
+Writes benchmarks/results/<name>.json and .md, with the run's duration (about 11 minutes alone on 2 cores).
 """
 
 from __future__ import annotations
