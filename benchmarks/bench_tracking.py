@@ -6,8 +6,8 @@ Sections, in one run:
 
 1. real: TUM fr1/xyz (mocap GT, read GT_TIME_OFFSET early) and 7-Scenes redkitchen frames
    150-199 (KinectFusion GT), at full (640x480) and half resolution, loop closures on and off:
-   ATE, ms/frame, failed / recovered / flagged frames, NEES per dof with its chi-square 95% band, per-axis z-score std, shares of
-   per-axis errors within 1 and 2 sigma; the same for the previous release (`--previous`, its
+   ATE, ms/frame, failed / recovered / flagged frames, NEES per dof with its chi-square 95% band,
+   per-axis z-score std, shares of per-axis errors within 1 and 2 sigma; the same for the previous release (`--previous`, its
    fixed ``point_noise_m = 2``) on the same frames, run in a subprocess from a git worktree; and,
    this tracker's only, the optimised graph's chi-square per dof of its loop and odometry edges
    (whether they agree with each other as their covariances say);
