@@ -4,13 +4,13 @@ ground truth re-anchored at frame 0 (track()'s fixed reference), as in its covar
 
 Sections, in one run:
 
-1. real: TUM fr1/xyz (mocap GT, read GT_TIME_OFFSET early) and 7-Scenes redkitchen frames
-   150-199 (KinectFusion GT), at full (640x480) and half resolution, loop closures on and off:
-   ATE, ms/frame, failed / recovered / flagged frames, NEES per dof with its chi-square 95% band,
-   per-axis z-score std, shares of per-axis errors within 1 and 2 sigma; the same for the previous release (`--previous`, its
-   fixed ``point_noise_m = 2``) on the same frames, run in a subprocess from a git worktree; and,
-   this tracker's only, the optimised graph's chi-square per dof of its loop and odometry edges
-   (whether they agree with each other as their covariances say);
+1. real: TUM fr1/xyz (mocap GT, read GT_TIME_OFFSET early) and 7-Scenes redkitchen frames 150-199
+   (KinectFusion GT), at full (640x480) and half resolution, loop closures on and off: ATE,
+   ms/frame, failed / recovered / flagged frames, NEES per dof with its chi-square 95% band,
+   per-axis z-score std, shares of per-axis errors within 1 and 2 sigma; the same for the previous
+   release (`--previous`, its fixed ``point_noise_m = 2``) on the same frames, run in a subprocess
+   from a git worktree; and, this tracker's only, the optimised graph's chi-square per dof of its
+   loop and odometry edges (whether they agree with each other as their covariances say);
    The same with each sequence cut in two halves (TUM fr1/xyz frames 0-15 / 16-31, 7-Scenes
    150-174 / 175-199): the first halves are the tuning split of the misregistration floor, the
    second halves report on frames no setting looked at;
