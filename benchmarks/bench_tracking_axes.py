@@ -71,18 +71,37 @@ def growth(errors: np.ndarray, gt: np.ndarray) -> dict:
             "slope (mrad/rad)": round(float(1000 * turned @ size / (turned @ turned)), 1)}
 
 
+def step_error(gt: np.ndarray, s: int, t: int, transformation) -> np.ndarray:
+    """(6,) error [rotation, translation] of a step (4, 4, frame s's camera -> frame t's) against the
+    ground truth's (gt: (N, 4, 4) poses), exp(xi) T = T_gt (first order)."""
+    delta = np.linalg.inv(gt[t]) @ gt[s] @ np.linalg.inv(np.asarray(transformation))
+    return np.concatenate([rotation_vector(delta[:3, :3]), delta[:3, 3]])
+
+
+def odometry_steps(traj) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """The pose graph's odometry edges (loop closures are its uncertain ones) as (source, target,
+    transformation (4, 4), information (6, 6))."""
+    return [(e.source_node_id, e.target_node_id, np.asarray(e.transformation), np.asarray(e.information))
+            for e in traj.pose_graph.edges if not e.uncertain]
+
+
 def step_errors(traj, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Errors (M, 6) of the graph's odometry edges against the ground truth's steps, exp(xi) T = T_gt
-    (first order), and the edges' covariances (M, 6, 6)."""
-    errors, covariances = [], []
-    for edge in traj.pose_graph.edges:
-        if edge.uncertain:
-            continue
-        s, t = edge.source_node_id, edge.target_node_id
-        delta = np.linalg.inv(gt[t]) @ gt[s] @ np.linalg.inv(np.asarray(edge.transformation))
-        errors.append(np.concatenate([rotation_vector(delta[:3, :3]), delta[:3, 3]]))
-        covariances.append(np.linalg.inv(np.asarray(edge.information)))
-    return np.array(errors), np.array(covariances)
+    """Errors (M, 6) of the graph's odometry edges against the ground truth's steps (step_error), and
+    the edges' covariances (M, 6, 6)."""
+    steps = odometry_steps(traj)
+    return (np.array([step_error(gt, s, t, T) for s, t, T, _ in steps]),
+            np.array([np.linalg.inv(information) for *_, information in steps]))
+
+
+def rotation_rms_by_offset(steps, frames) -> dict:
+    """RMS rotation error (mrad) of `steps` ((source, target, transformation, ...) between frames of
+    TUM fr1/xyz `frames`) against its ground truth read at each offset (s) of OFFSET_GRID, by offset."""
+    out = {}
+    for offset in OFFSET_GRID:
+        gt = load_sequence(REAL["tum_fr1_xyz"], gt_time_offset=float(offset)).select(frames).gt_poses
+        rotations = np.array([step_error(gt, s, t, T)[:3] for s, t, T, *_ in steps])
+        out[f"{offset + 0:g}"] = round(float(1000 * np.sqrt((rotations**2).sum(1).mean())), 2)
+    return out
 
 
 def coupling(errors: np.ndarray) -> dict:
@@ -105,17 +124,11 @@ def icp_time_offset(frames=range(16, 32)) -> dict:
                                                                 depth_scale=1.0).voxel_down_sample(0.01)
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.05, max_nn=30))
         clouds.append(cloud)
-    steps = [o3d.pipelines.registration.registration_icp(
+    steps = [(i, i + 1, o3d.pipelines.registration.registration_icp(
         a, b, 0.05, np.eye(4), o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50)).transformation
-        for a, b in zip(clouds, clouds[1:])]
-    out = {}
-    for offset in OFFSET_GRID:
-        gt = load_sequence(REAL["tum_fr1_xyz"], gt_time_offset=float(offset)).select(frames).gt_poses
-        errors = [rotation_vector((np.linalg.inv(gt[i + 1]) @ gt[i] @ np.linalg.inv(T))[:3, :3])
-                  for i, T in enumerate(steps)]
-        out[f"{offset + 0:g}"] = round(float(1000 * np.sqrt((np.array(errors) ** 2).sum(1).mean())), 2)
-    return out
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50)).transformation)
+        for i, (a, b) in enumerate(zip(clouds, clouds[1:]))]
+    return rotation_rms_by_offset(steps, frames)
 
 
 def run() -> dict:
