@@ -133,19 +133,19 @@ def sdf_surface(recon, cloud: o3d.geometry.PointCloud, voxel_size: float) -> o3d
     return mesh
 
 
-SIGMA_PROPERTIES = ("depth_sigma", "quality")
-"""The PLY vertex properties that carry each point's or vertex's sigma (m), the same values under two
-names: ``depth_sigma`` says what it is (Open3D's tensor reader, plyfile, CloudCompare's scalar
-fields), ``quality`` is the one per-vertex scalar MeshLab (and pymeshlab) reads, to colour or
-filter by."""
+SIGMA_PROPERTIES = ("depth_sigma", "quality", "scalar_depth_sigma")
+"""The PLY vertex properties that carry each point's or vertex's sigma (m), the same values under three
+names: ``depth_sigma`` says what it is (Open3D's tensor reader, plyfile), ``quality`` is the one
+per-vertex scalar MeshLab (and pymeshlab) reads, to colour or filter by, and CloudCompare loads a
+``scalar_`` property as a scalar field without asking (``depth sigma``, also from its command line)."""
 
 
 def write_mesh_ply(path, mesh: o3d.geometry.TriangleMesh, sigma: np.ndarray | None = None) -> None:
     """Write a mesh as binary PLY, atomically. Given `sigma` (V,) (m), each vertex also gets it as
     the float properties of :data:`SIGMA_PROPERTIES` beside x, y, z and uchar red, green, blue
     (Open3D's mesh writers drop extra vertex properties, so this one writes them with plyfile):
-    Open3D's mesh readers, MeshLab and trimesh read the mesh, ``o3d.t.io.read_point_cloud``,
-    plyfile and MeshLab the per-vertex sigma too."""
+    Open3D's mesh readers, MeshLab, CloudCompare and trimesh read the mesh, ``o3d.t.io.read_point_cloud``,
+    plyfile, MeshLab and CloudCompare the per-vertex sigma too."""
     if sigma is None:
         atomic_write(path, lambda p: o3d.io.write_triangle_mesh(p, mesh, write_ascii=False))
         return

@@ -11,6 +11,7 @@ import json
 import os
 import shlex
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -192,11 +193,9 @@ def test_point_cloud_ply_reads_the_same_in_open3d_and_other_ply_readers(tmp_path
                                atol=1e-6)
 
 
-def test_meshlab_reads_the_sigma_of_every_vertex_and_point(tmp_path):
-    """pymeshlab (MeshLab's own reader) takes one per-vertex scalar, from a property named quality:
-    the mesh's and the cloud's sigma come back there, beside their colours."""
-    import pymeshlab
-
+def write_sigma_plys(folder: Path) -> tuple[np.ndarray, np.ndarray, int]:
+    """A coloured sphere written as mesh.ply and cloud.ply (its vertices) with a random sigma per vertex:
+    (sigma (V,) m, colours (V, 3) in [0, 1], the mesh's face count)."""
     rng = np.random.default_rng(2)
     mesh = o3d.geometry.TriangleMesh.create_sphere(0.5, resolution=8)
     colors = rng.integers(0, 256, (len(mesh.vertices), 3)) / 255.0
@@ -204,9 +203,18 @@ def test_meshlab_reads_the_sigma_of_every_vertex_and_point(tmp_path):
     sigma = rng.random(len(mesh.vertices)).astype(np.float32) * 0.05
     cloud = o3d.geometry.PointCloud(mesh.vertices)
     cloud.colors = mesh.vertex_colors
-    write_mesh_ply(tmp_path / "mesh.ply", mesh, sigma)
-    write_point_cloud_ply(tmp_path / "cloud.ply", cloud, sigma)
-    for name, faces in (("mesh.ply", len(mesh.triangles)), ("cloud.ply", 0)):
+    write_mesh_ply(folder / "mesh.ply", mesh, sigma)
+    write_point_cloud_ply(folder / "cloud.ply", cloud, sigma)
+    return sigma, colors, len(mesh.triangles)
+
+
+def test_meshlab_reads_the_sigma_of_every_vertex_and_point(tmp_path):
+    """pymeshlab (MeshLab's own reader) takes one per-vertex scalar, from a property named quality:
+    the mesh's and the cloud's sigma come back there, beside their colours."""
+    import pymeshlab
+
+    sigma, colors, n_faces = write_sigma_plys(tmp_path)
+    for name, faces in (("mesh.ply", n_faces), ("cloud.ply", 0)):
         meshes = pymeshlab.MeshSet()
         meshes.load_new_mesh(str(tmp_path / name))
         read = meshes.current_mesh()
@@ -215,6 +223,28 @@ def test_meshlab_reads_the_sigma_of_every_vertex_and_point(tmp_path):
         np.testing.assert_allclose(read.vertex_scalar_array(), sigma, rtol=1e-6)
         np.testing.assert_allclose(read.vertex_color_matrix()[:, :3], colors, atol=1e-6)
     assert read_mesh_ply(tmp_path / "mesh.ply")[1] == pytest.approx(sigma)
+
+
+CLOUDCOMPARE = shutil.which("CloudCompare")
+
+
+@pytest.mark.skipif(CLOUDCOMPARE is None, reason="no CloudCompare (Debian's cloudcompare) to read the PLYs with")
+def test_cloudcompare_reads_the_sigma_as_a_scalar_field(tmp_path):
+    """CloudCompare's command line (as its GUI, without a dialog) loads the mesh and the cloud, and
+    its export of their vertices carries the sigma as the scalar field "depth sigma", beside the
+    colours."""
+    sigma, colors, _ = write_sigma_plys(tmp_path)
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    for name, extract in (("mesh.ply", ["-EXTRACT_VERTICES"]), ("cloud.ply", [])):
+        out = tmp_path / f"{name}.txt"
+        subprocess.run([CLOUDCOMPARE, "-SILENT", "-AUTO_SAVE", "OFF", "-O", str(tmp_path / name), *extract,
+                        "-C_EXPORT_FMT", "ASC", "-SEP", "SEMICOLON", "-ADD_HEADER", "-SAVE_CLOUDS", "FILE", str(out)],
+                       env=env, cwd=tmp_path, capture_output=True, timeout=120, check=True)
+        lines = out.read_text().splitlines()
+        assert lines[0] == "//X;Y;Z;R;G;B;depth sigma", name
+        table = np.array([line.split(";") for line in lines[1:]], float)
+        np.testing.assert_allclose(table[:, 6], sigma, rtol=1e-6)
+        np.testing.assert_allclose(table[:, 3:6] / 255.0, colors, atol=1e-6)
 
 
 def test_mesh_from_renders_fuses_a_plane(tmp_path):
