@@ -21,6 +21,8 @@ pnerf_proposal,pnerf_c2f --seeds 0 --steps 3000 --split tuning --name tuning_fer
         # on the pool frames the 10 views leave out (the held-out frames stay unseen)
     python benchmarks/bench_losses.py --datasets fern --variants pnerf,pnerf_proposal128 --seeds 0 --steps 3000 \
         --split tuning --name tuning_fern_proposal128
+    python benchmarks/bench_losses.py --datasets fern --variants pnerf,pnerf_grid --seeds 0 --steps 3000 \
+        --split tuning --name tuning_fern_grid    # the field type for sparse forward-facing views
 
 Writes benchmarks/results/<name>.json and <name>.md.
 """
@@ -51,6 +53,7 @@ VARIANTS = {  # name -> config overrides
     "pnerf_c2f": {"loss": "pnerf", "optimizer.coarse_to_fine": 0.5},
     "pnerf_proposal": {"loss": "pnerf", "sampling.n_proposal": 64, "sampling.n_coarse": 16},
     "pnerf_proposal128": {"loss": "pnerf", "sampling.n_proposal": 128, "sampling.n_coarse": 16},
+    "pnerf_grid": {"loss": "pnerf", "field": "grid"},  # the dense-grid field in place of the hash grid
 }
 PRESET = {"fern": "forward_facing"}  # each dataset's preset (the others: "fast")
 PAPER = {"fern": {"pnerf": (25.53, 0.80), "dsnerf": (24.27, 0.74)}}  # the PNeRF paper's Table (PSNR dB, SSIM)
