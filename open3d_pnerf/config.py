@@ -64,10 +64,10 @@ class ReconstructionConfig(Settings):
     loss: str = setting("pnerf", one_of(LOSSES))
     """"pnerf" (colour + depth-PDF + depth L1), "photometric" (colour only) or "dsnerf"."""
     field: str = setting("hashgrid", one_of(FIELD_CONFIGS))
-    """"hashgrid" (Instant-NGP hash grid: the sharpest renders of dense sequences at equal time on
-    a CPU), "grid" (dense grids 16..192: as fast, coarser, 3x the memory; better with a few sparse
-    views and for refine_poses) or "vanilla" (the paper's 8x256 MLP, slow, for comparison); its
-    settings are the sub-config of the same name."""
+    """"hashgrid" (Instant-NGP hash grid: the sharpest renders at equal time on a CPU, dense
+    sequences and 10 sparse views alike), "grid" (dense grids 16..192: coarser, 3x the memory,
+    about half the steps per second with 10 views; better for refine_poses) or "vanilla" (the
+    paper's 8x256 MLP, slow, for comparison); its settings are the sub-config of the same name."""
     geometry: str = setting("density", one_of(("density", "sdf")))
     """"density": the field's density is free (NeRF); "sdf": it is derived from a learned signed
     distance (VolSDF), trained with an eikonal term (objective.weights.eikonal) and, with depth
