@@ -137,7 +137,7 @@ SIGMA_PROPERTIES = ("depth_sigma", "quality", "scalar_depth_sigma")
 """The PLY vertex properties that carry each point's or vertex's sigma (m), the same values under three
 names: ``depth_sigma`` says what it is (Open3D's tensor reader, plyfile), ``quality`` is the one
 per-vertex scalar MeshLab (and pymeshlab) reads, to colour or filter by, and CloudCompare loads a
-``scalar_`` property as a scalar field without asking (``depth sigma``, also from its command line)."""
+``scalar_`` property as a scalar field by itself (``depth sigma``; its command line reads no other)."""
 
 
 def write_mesh_ply(path, mesh: o3d.geometry.TriangleMesh, sigma: np.ndarray | None = None) -> None:

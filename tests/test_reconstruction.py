@@ -230,9 +230,8 @@ CLOUDCOMPARE = shutil.which("CloudCompare")
 
 @pytest.mark.skipif(CLOUDCOMPARE is None, reason="no CloudCompare (Debian's cloudcompare) to read the PLYs with")
 def test_cloudcompare_reads_the_sigma_as_a_scalar_field(tmp_path):
-    """CloudCompare's command line (as its GUI, without a dialog) loads the mesh and the cloud, and
-    its export of their vertices carries the sigma as the scalar field "depth sigma", beside the
-    colours."""
+    """CloudCompare's command line loads the mesh and the cloud, and its export of their vertices
+    carries the sigma as the scalar field "depth sigma", beside the colours."""
     sigma, colors, _ = write_sigma_plys(tmp_path)
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
     for name, extract in (("mesh.ply", ["-EXTRACT_VERTICES"]), ("cloud.ply", [])):
