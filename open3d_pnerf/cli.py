@@ -5,39 +5,31 @@ Ctrl-C exits with 130 after training has written its checkpoint. `reconstruct` a
 train data-parallel when launched by torchrun (`torchrun --nproc-per-node N -m
 open3d_pnerf.cli reconstruct ...`): rank 0 prints and writes every output.
 
-The commands parse their arguments, call the pipeline (:mod:`open3d_pnerf.pipeline`, which runs
-every stage, handles the ranks and writes a reconstruction's run folder) and print.
+The commands parse their arguments, call what writes each command's folder (:mod:`open3d_pnerf.runs`,
+over the pipeline, which runs every stage and handles the ranks) and print.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import open3d as o3d
-from tqdm.auto import tqdm
 
-from ._files import atomic_write
-from .comparison import compare, scores_table
+from .comparison import scores_table
 from .config import ReconstructionConfig
 from .config import overrides as config_overrides
-from .data import load_sample, load_sequence, write_log_trajectory, write_open3d_trajectory, write_tum_trajectory
+from .data import load_sample, load_sequence
+from .data.devices import camera_frames
 from .distributed import BACKENDS
 from .errors import DatasetError, InputError, PNeRFError, TrainingInterrupted
-from .evaluation import heldout_scores
-from .export import write_mesh_ply, write_point_cloud_ply
 from .fields import FIELD_CONFIGS
 from .losses import LOSSES
-from .mapper import Mapper, camera_frames
-from .pipeline import RUN_CONFIG, extend_folder, read_run_config, reconstruct_folder, resolve_poses
 from .reconstruction import Reconstruction
-from .tracking import absolute_trajectory_error
-from .tsdf import tsdf_fusion
+from .runs import (RUN_CONFIG, evaluate_folder, extend_folder, map_stream, read_run_config, reconstruct_folder,
+                   render_files, track_folder, tsdf_folder)
 
 EXIT_OK, EXIT_ERROR, EXIT_INTERRUPTED = 0, 2, 130
 
@@ -155,65 +147,22 @@ def cmd_map(args) -> int:
         seq = _load(args)
         intrinsic, total = seq.intrinsic, len(seq)
         frames = ((seq.to_open3d(i), seq.timestamps[i]) for i in range(len(seq)))
-    mapper = Mapper(intrinsic, config)
-    bar = tqdm(total=total, desc="map", unit="frame", disable=args.quiet, dynamic_ncols=True)
-    scored, score, streaming = 0, None, 0.0
-    try:
-        for frame in frames:
-            image, stamp = frame if isinstance(frame[0], o3d.geometry.RGBDImage) else (frame, None)
-            t0 = time.perf_counter()
-            mapper.add(image, stamp)
-            streaming += time.perf_counter() - t0
-            if not args.quiet and len(mapper.keyframes) >= scored + args.score_every and mapper.holdout:
-                scored, score = len(mapper.keyframes), mapper.heldout_psnr()
-            bar.update(1)
-            held_out = f", held-out PSNR {score:.2f} dB" if score else ""
-            bar.set_postfix_str(f"keyframes {len(mapper.keyframes)}{held_out}")
-    except KeyboardInterrupt:  # a live camera: Ctrl-C ends the capture, the map is finished and saved
-        pass
-    bar.close()
-    if not len(mapper):
-        raise InputError("map: no frame was added")
-    recon = mapper.finish(args.finish)
-    out = Path(args.out)
-    mapper.save(out, recon)
-    summary = {**mapper.summary(), "frames_per_s": round(len(mapper) / max(streaming, 1e-9), 2),
-               "finish_s": config.mapping.finish_s if args.finish is None else args.finish}
-    if len(recon.holdout_indices):
-        summary["heldout"] = heldout_scores(recon, recon.frames)["model"]
-    atomic_write(out / "map_report.json", lambda p: Path(p).write_text(json.dumps(summary, indent=1, default=float)))
+    summary = map_stream(frames, intrinsic, config, args.out, args.finish, total, args.score_every, not args.quiet)
     if not args.quiet:
         print(f"mapped {summary['frames']} frames ({summary['keyframes']} keyframes) at "
-              f"{summary['frames_per_s']} frames/s; wrote {out} (resume with Mapper.resume)")
+              f"{summary['frames_per_s']} frames/s; wrote {args.out} (resume with Mapper.resume)")
     return EXIT_OK
 
 
 def cmd_track(args) -> int:
-    seq = _load(args)
-    traj = ReconstructionConfig().tracking.track(seq, progress=not args.quiet)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_tum_trajectory(out / "trajectory_tum.txt", traj.poses, seq.timestamps)
-    write_log_trajectory(out / "trajectory.log", traj.poses)
-    write_open3d_trajectory(out / "trajectory.json", traj.poses, seq.intrinsic)
-    np.save(out / "poses.npy", traj.poses)
-    np.save(out / "covariances.npy", traj.covariances)
-    msg = f"tracked {len(seq)} frames; failed frames: {traj.failed_frames or 'none'}"
-    if seq.gt_poses is not None:
-        msg += f"; ATE RMSE {1000 * absolute_trajectory_error(traj.poses, seq.gt_poses)['rmse']:.1f} mm"
-    print(msg)
+    print(track_folder(_load(args), args.out, progress=not args.quiet))
     return EXIT_OK
 
 
 def cmd_tsdf(args) -> int:
     seq = _load(args)
-    out = Path(args.out)
-    seq, poses, _, _ = resolve_poses(seq, ReconstructionConfig(progress=not args.quiet), _gt_poses(seq, args))
-    volume = tsdf_fusion(seq, poses, voxel_size=args.voxel_size, sdf_trunc=4 * args.voxel_size,
-                         return_volume=True, progress=not args.quiet)
-    write_mesh_ply(out / "mesh.ply", volume.mesh())
-    write_point_cloud_ply(out / "point_cloud.ply", volume.point_cloud())
-    print(f"wrote {out}/mesh.ply and point_cloud.ply")
+    tsdf_folder(seq, args.out, _gt_poses(seq, args), args.voxel_size, progress=not args.quiet)
+    print(f"wrote {args.out}/mesh.ply and point_cloud.ply")
     return EXIT_OK
 
 
@@ -230,14 +179,8 @@ def cmd_render(args) -> int:
         if not path.is_file():
             raise InputError(f"--pose {args.pose}: neither a frame index nor a 4x4 matrix text file")
         pose = np.loadtxt(path)
-    out = recon.render(pose, frame=index)  # a frame's pose: with that frame's exposure
-    target = Path(args.out)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(target), cv2.cvtColor((out["color"] * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
-    stem = target.with_suffix("")
-    cv2.imwrite(f"{stem}_depth.png", (out["depth"] * 1000).round().clip(0, 65535).astype(np.uint16))
-    cv2.imwrite(f"{stem}_depth_std.png", (out["depth_std"] * 1000).round().clip(0, 65535).astype(np.uint16))
-    print(f"wrote {target}, {stem}_depth.png and {stem}_depth_std.png (16-bit, millimetres)")
+    written = render_files(recon, pose, args.out, frame=index)  # a frame's pose: with that frame's exposure
+    print(f"wrote {', '.join(map(str, written))} (depth and sigma 16-bit, millimetres)")
     return EXIT_OK
 
 
@@ -264,19 +207,10 @@ def cmd_evaluate(args) -> int:
             if not recorded:
                 raise
             raise DatasetError(f"{exc} (recorded in {config_path}; pass --data DATA if it moved)") from None
-    if len(seq) != len(recon.poses):
-        raise InputError(f"--data {args.data}: {len(seq)} frames, but {folder} reconstructed {len(recon.poses)}")
-    if args.tsdf:
-        scores = compare(recon, seq, progress=not args.quiet).table
-    else:
-        scores = heldout_scores(recon, seq)
-    out = Path(args.out) if args.out else folder / "evaluation.json"
-    result = {"reconstruction": str(folder.resolve()), "sequence": repr(seq),
-              "holdout_frames": recon.holdout_indices.tolist(), "scores": scores}
-    atomic_write(out, lambda p: Path(p).write_text(json.dumps(result, indent=1, default=float)))
-    print(f"Held-out frames {recon.holdout_indices.tolist()} of {seq!r}:\n")
-    print("\n".join(scores_table(scores)))
-    print(f"\nwrote {out}")
+    result = evaluate_folder(folder, recon, seq, args.out, args.tsdf, progress=not args.quiet)
+    print(f"Held-out frames {result['holdout_frames']} of {result['sequence']}:\n")
+    print("\n".join(scores_table(result["scores"])))
+    print(f"\nwrote {args.out or folder / 'evaluation.json'}")
     return EXIT_OK
 
 

@@ -22,9 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from ._files import atomic_write
-from .data.sequence import RGBDSequence, evenly_spaced
+from .data.derived import evenly_spaced
+from .data.sequence import RGBDSequence
 from .errors import InputError
-from .evaluation import geometry_metrics, heldout_views, score_views
+from .evaluation import heldout_views, score_views
+from .metrics import geometry_metrics
 from .export import sensor_geometry, write_mesh_ply
 from .reconstruction import Reconstruction
 from .tsdf import OPEN3D_WEIGHT_THRESHOLD, tsdf_fusion

@@ -24,7 +24,8 @@ from tqdm.auto import tqdm
 
 from ._files import atomic_write
 from .camera import backproject, intrinsic_matrix, scale_intrinsic
-from .data.sequence import RGBDSequence, check_sequence, evenly_spaced
+from .data.derived import evenly_spaced
+from .data.sequence import RGBDSequence, check_sequence
 from .fusion import fuse_render_with_sensor
 from .settings import FLAG, Settings, count, number, setting
 from .tsdf import TSDFVolume, level_set_mesh

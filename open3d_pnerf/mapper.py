@@ -21,59 +21,29 @@ import torch
 
 from ._files import atomic_write, read_json_object
 from .batches import RayBatcher
-from .camera import check_intrinsic
+from .camera import adjoint, check_intrinsic, motion
 from .config import ReconstructionConfig
-from .data.sequence import Frame, RGBDSequence
+from .data.derived import evenly_spaced
+from .data.devices import StreamFrames
+from .data.sequence import RGBDSequence
 from .errors import CheckpointError, InputError
 from .evaluation import heldout_scores
 from .export import export_geometry
 from .fields import EncodedField
 from .model import build_model
 from .observed import ObservedSurface
-from .pipeline import checked_config
 from .reconstruction import Reconstruction
 from .scene import BOX_MARGIN, scene_box
+from .stages import checked_config
 from .targets import DepthTargets
+from .tracking.chain import Chain
+from .tracking.loops import close_loops
 from .tracking.odometry import FrameRegistration, OdometryOptions
-from .camera import adjoint, motion
-from .data.sequence import evenly_spaced
-from .tracking.tracker import _close_loops, _Run
+from .tracking.recovery import place_on_map, track_frame
 from .training import Trainer
 
 MAPPER_STATE = "mapper.json"
 TARGET_WINDOW = 3  # a new keyframe's depth targets fuse it with the keyframes just before it (this many in all)
-
-
-class _LiveFrames:
-    """The frames of a stream that the tracker may still read, by index (what FrameRegistration needs)."""
-
-    def __init__(self, intrinsic: o3d.camera.PinholeCameraIntrinsic):
-        self.intrinsic = self.color_intrinsic = intrinsic
-        self.K = np.asarray(intrinsic.intrinsic_matrix, np.float64)
-        self.image_size = (intrinsic.height, intrinsic.width)
-        self.name = "stream"
-        self.images: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
-
-    def __len__(self) -> int:
-        """Frames received so far (indices from 0; only the kept ones can still be read)."""
-        return max(self.images, default=-1) + 1
-
-    def __getitem__(self, index: int) -> Frame:
-        if index not in self.images:
-            raise InputError(f"stream frame {index} is no longer kept (neither a keyframe nor a held-out frame)")
-        color, depth, timestamp = self.images[index]
-        return Frame(color, depth, timestamp, index)
-
-    color_registered = True
-
-    def color_on_depth_grid(self, color: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
-        return color
-
-    def sequence(self, indices: list[int], name: str = "stream") -> RGBDSequence:
-        """The kept frames `indices` as an in-memory RGBDSequence."""
-        frames = [self.images[i] for i in indices]
-        return RGBDSequence.from_rgbd_images([(c, d) for c, d, _ in frames], self.intrinsic,
-                                             timestamps=[t for _, _, t in frames], name=name)
 
 
 class Mapper:
@@ -93,8 +63,8 @@ class Mapper:
         if not depth_scale > 0:
             raise InputError(f"depth_scale must be > 0 (raw units per metre), got {depth_scale!r}")
         self.depth_scale = float(depth_scale)
-        self.frames = _LiveFrames(self.intrinsic)
-        self.run: _Run | None = None
+        self.frames = StreamFrames(self.intrinsic)
+        self.chain: Chain | None = None
         self.keyframes: list[int] = []
         self.holdout: list[int] = []
         self.timestamps: list[float] = []
@@ -117,7 +87,7 @@ class Mapper:
     @property
     def poses(self) -> np.ndarray:
         """(N, 4, 4) camera-to-world poses of every frame added (as the pose graph has them now)."""
-        return np.stack(self.run.poses) if self.run else np.zeros((0, 4, 4))
+        return np.stack(self.chain.poses) if self.chain else np.zeros((0, 4, 4))
 
     def add(self, rgbd_image, timestamp: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Track one frame and train the map for ``config.mapping.train_s_per_frame`` seconds.
@@ -135,17 +105,17 @@ class Mapper:
         self.frames.images[index] = (color, depth, stamp)
         t0 = time.perf_counter()
         try:
-            if self.run is None:
-                self.run = _Run(FrameRegistration(self.frames), OdometryOptions())
+            if self.chain is None:
+                self.chain = Chain(FrameRegistration(self.frames), OdometryOptions())
             elif self._resumed is not None and index == self._resumed[0]:  # placed on the map, never guessed
-                self._anchor = self.run.place_on_map(index, [int(j) for j in evenly_spaced(index - 1, 8)], "stream")
+                self._anchor = place_on_map(self.chain, index, [int(j) for j in evenly_spaced(index - 1, 8)], "stream")
             else:
-                self.run.track_frame(index)
+                track_frame(self.chain, index)
         except BaseException:  # the frame is not added: the mapper stays as it was
             del self.frames.images[index]
-            if self.run is not None:
-                self.run.registrar.forget(index)
-                self.run.edges = [e for e in self.run.edges if e.target != index]
+            if self.chain is not None:
+                self.chain.registrar.forget(index)
+                self.chain.edges = [e for e in self.chain.edges if e.target != index]
             raise
         self.timestamps.append(stamp)
         keyframe = self._is_keyframe(index)
@@ -153,9 +123,9 @@ class Mapper:
             self.keyframes.append(index)
             loops = self.config.mapping.loops_per_keyframe
             if self.config.tracking.loop_closure and loops and len(self.keyframes) > 2:
-                _close_loops(self.run, self.frames, self.keyframes, self.run.options, None, 1.0, 45.0, loops, False,
-                             new_from=index)
-        elif (self.config.holdout_every and index not in self.run.failed_frames
+                close_loops(self.chain, self.frames, self.keyframes, self.chain.options, None, 1.0, 45.0, loops, False,
+                            new_from=index)
+        elif (self.config.holdout_every and index not in self.chain.failed_frames
               and self._since_keyframe == self.config.mapping.keyframe_every // 2):
             self.holdout.append(index)
         self._forget_frames(index)
@@ -165,7 +135,7 @@ class Mapper:
         if keyframe:
             self._add_keyframe(index)
         self._train_within_budget()
-        return self.run.poses[index].copy(), covariance
+        return self.chain.poses[index].copy(), covariance
 
     def _train_within_budget(self) -> None:
         """Train for the per-frame budget less what earlier frames ran past theirs (a step is never
@@ -202,11 +172,11 @@ class Mapper:
         since the last, or one the camera moved or turned far enough from the last; never a frame
         that no registration placed (its pose is a guess: it is not trained on)."""
         cfg = self.config.mapping
-        if index in self.run.failed_frames:
+        if index in self.chain.failed_frames:
             return False
         self._since_keyframe += 1
         if self.keyframes:
-            moved_m, turned_deg = motion(np.linalg.inv(self.run.poses[self.keyframes[-1]]) @ self.run.poses[index])
+            moved_m, turned_deg = motion(np.linalg.inv(self.chain.poses[self.keyframes[-1]]) @ self.chain.poses[index])
             if not (self._since_keyframe >= cfg.keyframe_every or moved_m > cfg.keyframe_distance_m
                     or turned_deg > cfg.keyframe_angle_deg):
                 return False
@@ -223,7 +193,7 @@ class Mapper:
         """(len(nodes), 6, 6) covariances of frames `nodes` in the pose graph as it is now; after a
         resume, the kept frames' saved ones, and the others' relative to the map plus the map frame's
         they were placed from (carried along the relative pose, as track_onto does)."""
-        graph = self.run.covariances(nodes, origin=self._anchor or 0)
+        graph = self.chain.covariances(nodes, origin=self._anchor or 0)
         out = graph[nodes]
         if self._resumed is not None:
             kept, saved = self._resumed
@@ -231,7 +201,7 @@ class Mapper:
                 if i < kept:
                     out[k] = saved[i]
                 elif self._anchor is not None:
-                    ad_inv = np.linalg.inv(adjoint(np.linalg.inv(self.run.poses[self._anchor]) @ self.run.poses[i]))
+                    ad_inv = np.linalg.inv(adjoint(np.linalg.inv(self.chain.poses[self._anchor]) @ self.chain.poses[i]))
                     out[k] = out[k] + ad_inv @ saved[self._anchor] @ ad_inv.T
         return out
 
@@ -400,7 +370,7 @@ class Mapper:
             mapper.frames.images[i] = (frame.color, frame.depth, float(recon.timestamps[i]))
         mapper.timestamps = [float(t) for t in recon.timestamps]
         mapper.keyframes, mapper.holdout = recon.train_indices.tolist(), recon.holdout_indices.tolist()
-        mapper.run = _Run(FrameRegistration(mapper.frames), OdometryOptions(), recon.poses)
+        mapper.chain = Chain(FrameRegistration(mapper.frames), OdometryOptions(), recon.poses)
         mapper.covariances = list(recon.covariances)
         mapper._resumed = (len(frames), recon.covariances)
         mapper.field, mapper.aabb = recon.field, recon.aabb
@@ -414,47 +384,3 @@ class Mapper:
 def _stack(targets: list[tuple[np.ndarray, ...]]) -> DepthTargets:
     """DepthTargets of per-frame (mean, sigma, valid, support, filled) tuples."""
     return DepthTargets(*(np.stack(a) for a in zip(*targets)))
-
-
-def camera_frames(kind: str, intrinsic: o3d.camera.PinholeCameraIntrinsic | None = None):
-    """(intrinsic, generator of (colour, depth in metres) frames) of a live camera that Open3D
-    drives: "realsense" (``o3d.t.io.RealSenseSensor``, depth aligned to colour; its intrinsic from
-    the sensor unless `intrinsic` is given) or "azure-kinect" (``o3d.io.AzureKinectSensor``, which
-    does not report its intrinsic: `intrinsic` is needed). Untested here (no camera): a thin path
-    over Open3D's own sensor classes; everything after the frames is what recorded folders go
-    through."""
-    if kind == "realsense":
-        if not hasattr(o3d.t.io, "RealSenseSensor"):
-            raise InputError("--camera realsense: this Open3D build has no RealSense support")
-        sensor = o3d.t.io.RealSenseSensor()
-        sensor.init_sensor(o3d.t.io.RealSenseSensorConfig({"align_depth_to_color": "true"}), 0, "")
-        sensor.start_capture()
-        meta = sensor.get_metadata()
-        intrinsic = intrinsic or meta.intrinsics
-        scale = float(meta.depth_scale)
-
-        def frames():
-            try:
-                while True:
-                    rgbd = sensor.capture_frame(True, True).to_legacy()
-                    yield (np.asarray(rgbd.color), np.asarray(rgbd.depth).astype(np.float32) / scale)
-            finally:
-                sensor.stop_capture()
-        return intrinsic, frames()
-    if kind == "azure-kinect":
-        if intrinsic is None:
-            raise InputError("--camera azure-kinect needs --intrinsic FILE (an Open3D PinholeCameraIntrinsic JSON of "
-                             "the colour camera the depth is aligned to): Open3D's live sensor does not report it")
-        if not hasattr(o3d.io, "AzureKinectSensor"):
-            raise InputError("--camera azure-kinect: this Open3D build has no Azure Kinect support")
-        sensor = o3d.io.AzureKinectSensor(o3d.io.AzureKinectSensorConfig())
-        if not sensor.connect(0):
-            raise InputError("--camera azure-kinect: no Azure Kinect found")
-
-        def frames():
-            while True:
-                rgbd = sensor.capture_frame(True)
-                if rgbd is not None:
-                    yield (np.asarray(rgbd.color), np.asarray(rgbd.depth).astype(np.float32) / 1000.0)
-        return intrinsic, frames()
-    raise InputError(f"--camera {kind!r}: expected 'realsense' or 'azure-kinect'")

@@ -25,6 +25,7 @@ from .error_law import DepthErrorLaw, depth_jump
 from .errors import InputError
 from .evaluation import training_depth_errors
 from .export import Geometry
+from .extension import extend
 from .model import PNeRFModel
 from .observed import ObservedSurface
 from .rendering import Rays
@@ -334,12 +335,10 @@ class Reconstruction:
 
         sequence: RGB-D frames of the same size and intrinsic as this map's (InputError
         otherwise). config: default, this map's config with
-        :data:`~open3d_pnerf.pipeline.EXTENSION_BUDGET` of its training budget at its learning
+        :data:`~open3d_pnerf.extension.EXTENSION_BUDGET` of its training budget at its learning
         rate; a config that changes the field type or its settings raises ConfigError. The new
         reconstruction's config keeps this map's budget and rate, so that each later extension's
         default is the same share. A segment that does not register to the map raises
         TrackingError. Needs :attr:`frames` (saved folders keep them).
         """
-        from .pipeline import extend
-
         return extend(self, sequence, config, poses, covariances)

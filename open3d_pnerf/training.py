@@ -20,7 +20,7 @@ from ._files import atomic_write
 from .batches import RayBatcher
 from .distributed import BACKENDS, DistributedContext
 from .errors import CheckpointError, ConfigError, TrainingError
-from .evaluation import mse_to_psnr
+from .metrics import mse_to_psnr
 from .losses import LossWeights
 from .model import PNeRFModel
 from .rendering import BatchShare

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from open3d_pnerf.camera import backproject, intrinsic_matrix, pinhole, project, reproject_depth
-from open3d_pnerf.data.sequence import depth_in_color_cameras
+from open3d_pnerf.data import depth_in_color_cameras
 from open3d_pnerf.errors import InputError
 from open3d_pnerf.tracking import track
 from open3d_pnerf.tracking.color import OFFSET_PRIOR, ColorOffsets

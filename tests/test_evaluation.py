@@ -18,28 +18,13 @@ import pytest
 
 from open3d_pnerf import ReconstructionConfig, RGBDSequence
 from open3d_pnerf.comparison import METHODS, Comparison, comparison_figure
-from open3d_pnerf.pipeline import compare_with_tsdf
+from open3d_pnerf.error_law import GAUSSIAN_SHARES, depth_nll, sigma_multiple
 from open3d_pnerf.errors import ConfigError, InputError
-from open3d_pnerf.evaluation import (
-    GAUSSIAN_SHARES,
-    auce,
-    ause,
-    depth_calibration,
-    depth_errors,
-    depth_nll,
-    exact_sigma_coverage,
-    geometry_metrics,
-    held_out_edges,
-    heldout_views,
-    psnr,
-    score_views,
-    sigma_coverage,
-    sigma_multiple,
-    sparsification,
-    ssim,
-    training_psnr,
-)
-from open3d_pnerf.pipeline import split_frames
+from open3d_pnerf.evaluation import exact_sigma_coverage, held_out_edges, heldout_views, score_views, training_psnr
+from open3d_pnerf.metrics import (auce, ause, depth_calibration, depth_errors, geometry_metrics, psnr, sigma_coverage,
+                                  sparsification, ssim)
+from open3d_pnerf.pipeline import compare_with_tsdf
+from open3d_pnerf.stages import split_frames
 from open3d_pnerf.reconstruction import Reconstruction
 from open3d_pnerf.synthetic import synthetic_sequence
 

@@ -71,7 +71,7 @@ def test_a_saved_mapper_resumes_on_the_map_and_refuses_frames_it_cannot_place(sa
         resumed.add((room.color, room.depth))
     assert len(resumed) == 8  # the refused frame left nothing behind
     pose, covariance = resumed.add(sample.to_open3d(8), sample.timestamps[8])
-    placed = [e for e in resumed.run.edges if e.target == 8 and e.success]
+    placed = [e for e in resumed.chain.edges if e.target == 8 and e.success]
     assert placed and placed[0].source < 8
     assert np.linalg.norm(pose[:3, 3] - mapper.poses[7][:3, 3]) < 0.05
     assert (np.diag(covariance) > 0).all()

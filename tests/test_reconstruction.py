@@ -34,7 +34,7 @@ from open3d_pnerf.export import (
     write_mesh_ply,
     write_point_cloud_ply,
 )
-from open3d_pnerf.pipeline import split_frames
+from open3d_pnerf.stages import split_frames
 from open3d_pnerf.scene import scene_box
 from open3d_pnerf import pipeline
 from open3d_pnerf.error_law import DepthErrorLaw

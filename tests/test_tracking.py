@@ -25,8 +25,10 @@ from open3d_pnerf.tracking import (
     pose_graph_covariances,
     track,
 )
-from open3d_pnerf.tracking.odometry import FrameRegistration, PairResult, feature_registration, orb_keypoints
-from open3d_pnerf.tracking.tracker import _Run, constant_velocity_pose
+from open3d_pnerf.tracking.chain import Chain, constant_velocity_pose
+from open3d_pnerf.tracking.odometry import FrameRegistration, PairResult
+from open3d_pnerf.tracking.recovery import consensus, try_candidates
+from open3d_pnerf.tracking.starts import feature_registration, orb_keypoints
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz"
@@ -349,23 +351,23 @@ def test_the_constant_velocity_prediction_repeats_the_last_step_in_the_camera_fr
 
 
 def test_consensus_prefers_votes_then_the_residual_per_overlap():
-    run = _Run(registrar=None, options=OdometryOptions())
+    chain = Chain(registrar=None, options=OdometryOptions())
     right, wrong = twist_matrix(np.r_[0, 0, 0, 0.07, 0, 0]), np.eye(4)
     # 7-Scenes every 10th frame, frame 35: a few percent less residual bought with a third less overlap
-    kept, recovered = run.consensus([(passing(wrong, 0.55, 0.0070, "constant velocity"), 0),
+    kept, recovered = consensus(chain, [(passing(wrong, 0.55, 0.0070, "constant velocity"), 0),
                                      (passing(right, 0.81, 0.0075, "features"), 0)])
     assert kept[0].init == "features" and recovered
     # synthetic room, seed 0, frame 4: a little more overlap bought with a quarter more residual
-    kept, recovered = run.consensus([(passing(right, 0.538, 0.0036, "constant velocity"), 0),
+    kept, recovered = consensus(chain, [(passing(right, 0.538, 0.0036, "constant velocity"), 0),
                                      (passing(wrong, 0.552, 0.0045, "global"), 0)])
     assert kept[0].init == "constant velocity" and not recovered
     # within poses that agree, the lowest residual: the ratio there moved the synthetic 100-frame seed 2 12.7 mm off
     near_right = twist_matrix(np.r_[0, 0, 0, 0.075, 0, 0])
-    kept, _ = run.consensus([(passing(right, 0.50, 0.0050, "constant velocity"), 0),
+    kept, _ = consensus(chain, [(passing(right, 0.50, 0.0050, "constant velocity"), 0),
                              (passing(near_right, 0.90, 0.0055, "global"), 0)])
     assert kept[0].init == "constant velocity"
     # two starts that agree outvote a lone minimum whatever its fit
-    kept, recovered = run.consensus([(passing(wrong, 0.55, 0.0070, "constant velocity"), 0),
+    kept, recovered = consensus(chain, [(passing(wrong, 0.55, 0.0070, "constant velocity"), 0),
                                      (passing(wrong, 0.56, 0.0072, "zero motion"), 0),
                                      (passing(right, 0.81, 0.0050, "features"), 0)])
     assert kept[0].init == "constant velocity" and not recovered
@@ -395,20 +397,20 @@ def test_a_registration_that_lands_far_from_the_prediction_has_every_start_tried
     # 7-Scenes every 10th frame, frame 87: when the constant-velocity start passes, it settles 66-73 mm from
     # the prediction, 37-52 mm off, at a residual and overlap that need not stand out (bench_tracking_starts.py)
     registrar = _Registrar(twist_matrix(np.r_[0, 0, 0, landing_m, 0, 0]))
-    run = _Run(registrar=registrar, options=OdometryOptions())
-    (kept, _), recovered = run.consensus(run.try_candidates(1))
+    chain = Chain(registrar=registrar, options=OdometryOptions())
+    (kept, _), recovered = consensus(chain, try_candidates(chain, 1))
     assert registrar.tried == tried
     assert recovered == (landing_m > 0.05)  # the pose the other starts agree on, when they were tried
     assert motion(kept.transformation)[0] == pytest.approx(0.0 if recovered else landing_m, abs=1e-9)
 
 
 def test_a_registration_that_overlaps_much_less_than_the_accepted_ones_is_doubtful():
-    run = _Run(registrar=None, options=OdometryOptions())  # overlap_ratio 0.8
-    assert not run.doubtful(passing(np.eye(4), 0.3, 0.005, "constant velocity"))  # nothing to compare with yet
-    run.residuals, run.overlaps = [0.005] * 3, [0.80, 0.75, 0.85]
-    assert not run.doubtful(passing(np.eye(4), 0.65, 0.005, "constant velocity"))  # 0.81x the median
-    assert run.doubtful(passing(np.eye(4), 0.55, 0.005, "constant velocity"))  # 0.69x: frame 87's case
-    assert run.doubtful(passing(np.eye(4), 0.80, 0.020, "constant velocity"))  # a residual 4x the median
+    chain = Chain(registrar=None, options=OdometryOptions())  # overlap_ratio 0.8
+    assert not chain.doubtful(passing(np.eye(4), 0.3, 0.005, "constant velocity"))  # nothing to compare with yet
+    chain.residuals, chain.overlaps = [0.005] * 3, [0.80, 0.75, 0.85]
+    assert not chain.doubtful(passing(np.eye(4), 0.65, 0.005, "constant velocity"))  # 0.81x the median
+    assert chain.doubtful(passing(np.eye(4), 0.55, 0.005, "constant velocity"))  # 0.69x: frame 87's case
+    assert chain.doubtful(passing(np.eye(4), 0.80, 0.020, "constant velocity"))  # a residual 4x the median
 
 
 @pytest.mark.slow

@@ -7,8 +7,9 @@ from typing import Callable
 
 import cv2
 import numpy as np
+import open3d as o3d
 
-from ..errors import DatasetError
+from ..errors import DatasetError, InputError
 
 FrameReader = Callable[[], tuple[np.ndarray, np.ndarray]]
 """Zero-argument callable returning (colour uint8 HxWx3, depth float32 HxW metres); an
@@ -97,3 +98,31 @@ def constant_reader(color: np.ndarray, depth: np.ndarray, source: str) -> FrameR
 
     read.source = source
     return read
+
+
+def memory_readers(images, depth_scale: float) -> list[FrameReader]:
+    """Readers of frames held in memory: `images` a list of ``o3d.geometry.RGBDImage`` (depth in
+    metres, colour kept: ``convert_rgb_to_intensity=False``) or of ``(color, depth)`` numpy pairs,
+    colour uint8 (H, W, 3), depth uint16 (divided by `depth_scale`, raw units per metre) or
+    float32/64 metres; InputError names the first image that is neither."""
+    if not depth_scale > 0:
+        raise InputError(f"depth_scale must be > 0 (raw units per metre), got {depth_scale!r}")
+    readers = []
+    for i, image in enumerate(images):
+        if isinstance(image, o3d.geometry.RGBDImage):
+            color, depth = np.asarray(image.color), np.asarray(image.depth)
+            if color.ndim == 2 or color.dtype != np.uint8:
+                raise InputError(
+                    f"images[{i}]: the RGBDImage colour is grey/float; create it with "
+                    "convert_rgb_to_intensity=False so that colour is kept"
+                )
+        elif isinstance(image, (tuple, list)) and len(image) == 2:
+            color, depth = (np.asarray(a) for a in image)
+        else:
+            raise InputError(
+                f"images[{i}] must be an o3d.geometry.RGBDImage or a (color, depth) pair, "
+                f"got {type(image).__name__}"
+            )
+        readers.append(constant_reader(np.array(color), depth_in_metres(depth, depth_scale, f"images[{i}]"),
+                                       f"images[{i}]"))
+    return readers

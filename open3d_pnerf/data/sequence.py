@@ -14,11 +14,11 @@ from typing import Sequence
 import cv2
 import numpy as np
 import open3d as o3d
-from scipy import ndimage
 
-from ..camera import check_intrinsic, check_poses, intrinsic_matrix, missing_poses, reproject_depth, scale_intrinsic
+from ..camera import check_intrinsic, check_poses, intrinsic_matrix, missing_poses, scale_intrinsic
 from ..errors import DatasetError, InputError
-from .images import FrameReader, constant_reader, depth_in_metres
+from .color_registration import ColorRig
+from .images import FrameReader, memory_readers
 from .sfm import SfMData
 
 MEDIAN_DEPTH_LIMIT = 20.0  # metres: an indoor RGB-D median beyond this means a wrong depth scale
@@ -264,57 +264,24 @@ class RGBDSequence:
         return same_intrinsic and np.allclose(self._color_rig, np.eye(4))
 
     def color_on_depth_grid(self, color: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
-        """Resample a colour image (H_c, W_c, 3) onto the depth image's pixel grid (identity if registered).
-
-        depth: the frame's depth (H, W) m, needed when the sequence's ``color_extrinsic`` moves the
-        colour camera's centre: each depth pixel then takes the colour where its point projects in
-        the colour camera (pixels without depth, or beyond ``depth_trunc``, take the depth of the
-        nearest pixel with it; a frame without any, the plane at infinity). Occlusion is not tested:
-        a point the colour camera cannot see takes the colour of what hides it. When the two cameras
-        share a centre the depth is not needed.
-        """
+        """Resample a colour image (H_c, W_c, 3) onto the depth image's pixel grid (identity if
+        registered; see :meth:`~open3d_pnerf.data.color_registration.ColorRig.resample`). depth: the
+        frame's depth (H, W) m, needed when the sequence's ``color_extrinsic`` moves the colour
+        camera's centre."""
         if self.color_registered:
             return color
-        translation = self._color_rig[:3, 3]
-        if not translation.any():
-            return cv2.remap(color, *self._plane_maps, cv2.INTER_LINEAR)
-        if depth is None:
-            raise InputError(f"{self.name}: color_on_depth_grid() needs the frame's depth: its colour camera "
-                             "is offset from the depth camera (color_extrinsic)")
-        depth = np.asarray(depth)
-        h, w = self.image_size
-        if depth.shape != (h, w):
-            raise InputError(f"{self.name}: color_on_depth_grid() got depth {depth.shape[1]}x{depth.shape[0]}, "
-                             f"expected the depth grid's {w}x{h}")
-        if not (depth > 0).any():
-            return cv2.remap(color, *self._plane_maps, cv2.INTER_LINEAR)
-        nearest = ndimage.distance_transform_edt(depth <= 0, return_distances=False, return_indices=True)
-        offset = translation / depth[tuple(nearest)][..., None]  # the camera's offset over each point's z
-        return cv2.remap(color, *self._color_maps(offset), cv2.INTER_LINEAR)
+        return self._rig.resample(color, depth, self.name)
 
     @property
     def _color_rig(self) -> np.ndarray:
         """(4, 4) depth-camera to colour-camera transform (the identity without color_extrinsic)."""
         return np.eye(4) if self.color_extrinsic is None else self.color_extrinsic
 
-    def _color_maps(self, offset) -> tuple[np.ndarray, np.ndarray]:
-        """(map_x, map_y) float32 (H, W): where each depth pixel's point lands in the colour image,
-        the point being its ray at z = 1 turned into the colour camera plus `offset` ((3,) or
-        (H, W, 3): the colour camera's offset over the point's depth-camera z)."""
-        kd, kc = self.K, intrinsic_matrix(self.color_intrinsic)
-        h, w = self.image_size
-        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-        rays = np.stack([(u - kd[0, 2]) / kd[0, 0], (v - kd[1, 2]) / kd[1, 1], np.ones_like(u)], -1)
-        points = rays @ self._color_rig[:3, :3].T + offset
-        map_x = kc[0, 0] * points[..., 0] / points[..., 2] + kc[0, 2]
-        map_y = kc[1, 1] * points[..., 1] / points[..., 2] + kc[1, 2]
-        return map_x.astype(np.float32), map_y.astype(np.float32)
-
     @functools.cached_property
-    def _plane_maps(self) -> tuple[np.ndarray, np.ndarray]:
-        """The colour maps of the plane at infinity: every frame's when the cameras share a centre
-        (computed once per sequence, not on every frame load)."""
-        return self._color_maps(np.zeros(3))
+    def _rig(self) -> ColorRig:
+        """The colour camera against the depth grid (its maps computed once per sequence, not on every
+        frame load)."""
+        return ColorRig(self.K, intrinsic_matrix(self.color_intrinsic), self._color_rig, self.image_size)
 
     # -- construction from memory -------------------------------------------------------
     @classmethod
@@ -336,93 +303,12 @@ class RGBDSequence:
         metres. intrinsic: the depth camera's ``o3d.camera.PinholeCameraIntrinsic``.
         The frames are in memory, so all are checked here (not when first used).
         """
-        if not depth_scale > 0:
-            raise InputError(f"depth_scale must be > 0 (raw units per metre), got {depth_scale!r}")
-        readers = []
-        for i, image in enumerate(images):
-            if isinstance(image, o3d.geometry.RGBDImage):
-                color, depth = np.asarray(image.color), np.asarray(image.depth)
-                if color.ndim == 2 or color.dtype != np.uint8:
-                    raise InputError(
-                        f"images[{i}]: the RGBDImage colour is grey/float; create it with "
-                        "convert_rgb_to_intensity=False so that colour is kept"
-                    )
-            elif isinstance(image, (tuple, list)) and len(image) == 2:
-                color, depth = (np.asarray(a) for a in image)
-            else:
-                raise InputError(
-                    f"images[{i}] must be an o3d.geometry.RGBDImage or a (color, depth) pair, "
-                    f"got {type(image).__name__}"
-                )
-            readers.append(constant_reader(np.array(color), depth_in_metres(depth, depth_scale, f"images[{i}]"),
-                                           f"images[{i}]"))
+        readers = memory_readers(images, depth_scale)
         seq = cls(readers, intrinsic, timestamps, gt_poses, depth_trunc, name=name)
         for i in range(1, len(seq)):
             seq[i]  # validates the frame
         check_first_frame(seq)
         return seq
-
-
-def concatenate(sequences: Sequence[RGBDSequence], name: str | None = None) -> RGBDSequence:
-    """One sequence of the frames of `sequences` in order, each frame as its sequence gives it (at
-    its image scale, colour on the depth grid), read lazily. The sequences must have depth images
-    and the same image size and depth intrinsic (InputError naming the first that differs);
-    ground-truth poses are kept where a sequence has them (NaN rows elsewhere)."""
-    if not sequences:
-        raise InputError("concatenate(): no sequences")
-    first = check_sequence(sequences[0], what="concatenate(): sequences[0]", needs_depth=True)
-    readers, gt = [], []
-    for k, seq in enumerate(sequences):
-        check_sequence(seq, what=f"concatenate(): sequences[{k}]", needs_depth=True)
-        if seq.image_size != first.image_size or not np.allclose(seq.K, first.K, rtol=1e-6, atol=1e-6):
-            raise InputError(f"{seq.name}: frames of {seq.image_size[1]}x{seq.image_size[0]} with intrinsic "
-                             f"{np.round(seq.K[[0, 1, 0, 1], [0, 1, 2, 2]], 3).tolist()} (fx, fy, cx, cy) do not "
-                             f"match {first.name}'s {first.image_size[1]}x{first.image_size[0]} with "
-                             f"{np.round(first.K[[0, 1, 0, 1], [0, 1, 2, 2]], 3).tolist()}")
-        readers += [_registered_reader(seq, i) for i in range(len(seq))]
-        gt.append(seq.gt_poses if seq.gt_poses is not None else np.full((len(seq), 4, 4), np.nan))
-    gt_poses = np.concatenate(gt) if any(seq.gt_poses is not None for seq in sequences) else None
-    return RGBDSequence(readers, first.intrinsic, np.concatenate([seq.timestamps for seq in sequences]), gt_poses,
-                        name=name or "+".join(dict.fromkeys(seq.name for seq in sequences)))
-
-
-def depth_in_color_cameras(sequence: RGBDSequence, offsets: np.ndarray) -> RGBDSequence:
-    """`sequence` with each frame's depth moved into its colour camera, which sits at offsets[i]
-    (N, 4, 4) in the depth camera's frame (:func:`~open3d_pnerf.camera.reproject_depth`): the frames
-    of the colour images' poses (Trajectory.color_poses), colour on the depth grid, read lazily."""
-    offsets = np.asarray(offsets, np.float64)
-    if offsets.shape != (len(sequence), 4, 4) or not np.isfinite(offsets).all():
-        raise InputError(f"offsets must be finite with shape ({len(sequence)}, 4, 4), got {offsets.shape}")
-    readers = []
-    for i, offset in enumerate(offsets):
-        read = _registered_reader(sequence, i)
-        readers.append(_moved_reader(read, sequence.K, np.linalg.inv(offset)))
-    return RGBDSequence(readers, sequence.intrinsic, sequence.timestamps, sequence.gt_poses, name=sequence.name)
-
-
-def _moved_reader(read: FrameReader, K: np.ndarray, transform: np.ndarray) -> FrameReader:
-    def moved():
-        color, depth = read()
-        return color, reproject_depth(depth, K, transform)
-
-    moved.source = read.source
-    return moved
-
-
-def _registered_reader(sequence: RGBDSequence, index: int) -> FrameReader:
-    """A reader of frame `index` of `sequence` as it gives it, its colour on the depth grid."""
-
-    def read():
-        frame = sequence[index]
-        return sequence.color_on_depth_grid(frame.color, frame.depth), frame.depth
-
-    read.source = sequence._describe(index)
-    return read
-
-
-def evenly_spaced(n: int, k: int) -> np.ndarray:
-    """Indices of min(k, n) items evenly spread over range(n), first and last included."""
-    return np.unique(np.round(np.linspace(0, n - 1, min(k, n))).astype(int)) if n and k else np.zeros(0, int)
 
 
 def check_sequence(sequence, min_frames: int = 1, what: str = "sequence", needs_depth: bool = False) -> RGBDSequence:

@@ -2,6 +2,13 @@
 
     traj = track(sequence)            # Trajectory: poses (N,4,4), covariances (N,6,6), ...
     absolute_trajectory_error(traj.poses, sequence.gt_poses)["rmse"]
+
+One module per job: ``odometry`` (a verified registration of two frames) with ``uncertainty`` (its
+sub-pixel refinement and covariance) and ``starts`` (initial guesses without a motion model);
+``chain`` (a run's poses, pose graph and log), ``recovery`` (how each frame is placed, and what
+happens when a registration fails), ``loops`` (loop closures and the graph's optimisation),
+``covariance`` (the graph's marginals), ``color`` (the colour cameras beside the depth ones);
+``tracker`` puts them together; ``metrics`` scores a trajectory against ground truth.
 """
 
 from .covariance import edge_jacobians, pose_graph_covariances, pose_graph_hessian
