@@ -36,7 +36,7 @@ from open3d_pnerf.export import (
 )
 from open3d_pnerf.stages import split_frames
 from open3d_pnerf.scene import scene_box
-from open3d_pnerf import pipeline
+from open3d_pnerf import stages
 from open3d_pnerf.error_law import DepthErrorLaw
 from open3d_pnerf.storage import FORMAT_VERSION
 from open3d_pnerf.training import Trainer, read_checkpoint
@@ -852,7 +852,7 @@ def test_ctrl_c_stops_reconstruct_after_writing_a_checkpoint_it_resumes_from(sam
     cfg = ReconstructionConfig.preset("test", max_steps=10, progress=False)
     interrupt_training_at(monkeypatch, 3)
     exports = []
-    monkeypatch.setattr(pipeline, "export_geometry", lambda recon, *a, **k: exports.append(recon))
+    monkeypatch.setattr(stages, "export_geometry", lambda recon, *a, **k: exports.append(recon))
     with pytest.raises(KeyboardInterrupt) as info:
         reconstruct(seq, cfg, poses=seq.gt_poses, checkpoint_dir=tmp_path / "ckpt")
     assert isinstance(info.value, TrainingInterrupted) and info.value.step == 3 and not exports
