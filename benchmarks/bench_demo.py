@@ -1,7 +1,9 @@
-"""`make demo`'s numbers as a regression test: run the demo exactly as a user does and keep its
-held-out scores.
+"""What does `make demo` give, and did a change move it? The demo run exactly as a user runs it, its
+held-out scores kept as a regression test; with --against REV, the same runs of an earlier revision
+beside today's, every number compared (a change meant to leave behaviour alone must leave them equal:
+with --steps, training stops after a fixed number of steps, and the demo is bit-reproducible).
 
-Runs the installed command line, ``open3d-pnerf demo --out <temporary folder>`` (the bundled TUM
+Runs the command line, ``open3d-pnerf demo --out <temporary folder>`` (the bundled TUM
 sample: tracked poses, the `fast` preset, every 4th frame held out), `--runs` times in a row, and
 reads its report.json: the model's held-out PSNR and SSIM, depth on the pixels every method
 covers, the exported mesh's coverage, the same for the sensor alone and the TSDF, tracking ATE and
@@ -12,16 +14,17 @@ PSNR on the pixels some training view saw. Writes results/<name>.json and .md. A
 file it replaces (the committed one), a held-out PSNR lower by more than --tolerance dB, or a
 coverage lower by more than 0.01, fails the run (exit status 1) and says which; the .md says
 whether the held-out PSNR reaches --target dB.
-Needs no shared data; about 1-2 minutes a run on 2 cores.
+Needs no shared data; about 2-3 minutes a run on 2 cores.
 
     python benchmarks/bench_demo.py [--runs 1] [--tolerance 1.0] [--target 25] [--name demo] [--set KEY=VALUE ...]
+    python benchmarks/bench_demo.py --steps 300 --against c330ed1 --name demo_identity
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -29,7 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_suite import OUT, machine
+from common import OUT, REPO, Revision, commit, machine, write_result
 
 KEYS = {  # report key: (method, metric)
     "psnr": ("model", "psnr"), "ssim": ("model", "ssim"), "psnr_common": ("model", "psnr_common"),
@@ -42,21 +45,23 @@ KEYS = {  # report key: (method, metric)
 }
 
 
-def run_demo(out: Path, settings=()) -> dict:
-    """One `open3d-pnerf demo` into `out` (settings: its --set KEY=VALUE options); its numbers
-    (KEYS, ATE, training, wall time)."""
-    exe = shutil.which("open3d-pnerf", path=str(Path(sys.executable).parent))
-    if exe is None:
-        sys.exit("open3d-pnerf is not installed in this Python's environment (make install)")
+def run_demo(out: Path, settings=(), revision: Revision | None = None) -> dict:
+    """One `open3d-pnerf demo` into `out` (settings: its options, e.g. --set KEY=VALUE), today's or
+    the `revision`'s; its numbers (KEYS, ATE, training, wall time; today's also per held-out frame)."""
+    args = ["-m", "open3d_pnerf.cli", "--quiet", "demo", "--out", str(out), *settings]
     t0 = time.perf_counter()
-    subprocess.run([exe, "demo", "--out", str(out), *(f"--set={kv}" for kv in settings)], check=True,
-                   stdout=subprocess.DEVNULL)
+    if revision is None:
+        subprocess.run([sys.executable, *args], check=True, stdout=subprocess.DEVNULL, cwd=REPO)
+    else:
+        revision.python(args, check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
     report = json.loads((out / "report.json").read_text())
     scores = report["scores"]
     row = {key: scores[m][k] for key, (m, k) in KEYS.items() if k in scores.get(m, {})}
+    row.update({f"{m}.{k}": v for m, table in scores.items() for k, v in table.items()})  # every score, for --against
     return {**row, "ate_rmse_m": report["ate_rmse_m"], "train_s": report["training"]["seconds"],
-            "steps": report["training"]["steps"], "wall_s": round(wall, 1), **heldout_frames(out)}
+            "steps": report["training"]["steps"], "wall_s": round(wall, 1),
+            **(heldout_frames(out) if revision is None else {})}
 
 
 def heldout_frames(folder: Path) -> dict:
@@ -130,6 +135,8 @@ def markdown(result: dict) -> str:
             ("tracking ATE RMSE (mm)", "ate_rmse_m", 1000, ".1f"), ("training (s)", "train_s", 1, ".0f"),
             ("training steps", "steps", 1, ".0f"), ("demo wall time (s)", "wall_s", 1, ".0f")]
     settings = "".join(f" --set {kv}" for kv in meta.get("settings", []))
+    if meta.get("steps"):
+        settings += f" --max-steps {meta['steps']} --set time_budget_s=null"
     lines = [f"`open3d-pnerf demo{settings}` (bundled TUM sample, tracked poses, `fast` preset), {len(runs)} run(s) at "
              f"commit {meta['commit']}; {meta['machine']}.", "",
              "| | " + " | ".join(f"run {i + 1}" for i in range(len(runs))) + " |", "|" + " --- |" * (len(runs) + 1)]
@@ -144,7 +151,22 @@ def markdown(result: dict) -> str:
     lines += ["", f"Target: held-out PSNR at least {meta['target']:g} dB: "
               + ("met." if mean("psnr", runs) >= meta["target"] else f"missed ({mean('psnr', runs):.2f} dB)."),
               "Regressions against the previous result file: " + ("; ".join(result["regressions"]) or "none.")]
+    for k, c in enumerate(result.get("identity", [])):
+        lines.append(f"Run {k + 1} against {meta['against']}: {c['compared']} numbers compared (every held-out score "
+                     "of every method, tracking ATE, steps), " + ("all identical." if c["identical"] else
+                     f"{len(c['differ'])} differ: {c['differ']}"))
     return "\n".join(lines) + "\n"
+
+
+def compare_runs(runs: list[dict], old: list[dict]) -> list[dict]:
+    """Per run, today's numbers against the earlier revision's: how many were compared, the keys that
+    differ (with both values), and whether every one is equal (wall time and training seconds excepted)."""
+    out = []
+    for new, was in zip(runs, old):
+        keys = [k for k in was if k in new and k not in ("wall_s", "train_s")]
+        differ = {k: [was[k], new[k]] for k in keys if was[k] != new[k]}
+        out.append({"compared": len(keys), "differ": differ, "identical": not differ})
+    return out
 
 
 def main():
@@ -155,22 +177,30 @@ def main():
     ap.add_argument("--name", default="demo")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a config setting passed to the demo (repeatable), e.g. objective.coarse_color=true")
+    ap.add_argument("--steps", type=int, help="train for this many steps, without a time budget (reproducible)")
+    ap.add_argument("--against", metavar="REV", help="also run the demo at this earlier git revision; compare")
     args = ap.parse_args()
     path = OUT / f"{args.name}.json"
     before = json.loads(path.read_text()) if path.is_file() else None
-    runs = []
-    for i in range(args.runs):
-        with tempfile.TemporaryDirectory() as tmp:
-            runs.append(run_demo(Path(tmp) / "demo", args.set))
-        print(f"run {i + 1}: " + ", ".join(f"{k} {v:.4g}" for k, v in runs[-1].items() if v is not None), flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent).stdout.strip()
-    meta = {"commit": commit, "machine": machine(), "target": args.target, "settings": args.set}
+    settings = [f"--set={kv}" for kv in args.set]
+    if args.steps:
+        settings += ["--max-steps", str(args.steps), "--set=time_budget_s=null"]
+    runs, old = [], []
+    with (Revision(args.against) if args.against else contextlib.nullcontext()) as revision:
+        for i in range(args.runs):
+            with tempfile.TemporaryDirectory() as tmp:
+                runs.append(run_demo(Path(tmp) / "demo", settings))
+                if revision is not None:
+                    old.append(run_demo(Path(tmp) / "against", settings, revision))
+            print(f"run {i + 1}: psnr {runs[-1]['psnr']:.4f}, steps {runs[-1]['steps']}"
+                  + (f"; at {args.against}: psnr {old[-1]['psnr']:.4f}" if old else ""), flush=True)
+    meta = {"commit": commit(), "machine": machine(), "target": args.target, "settings": args.set,
+            "steps": args.steps, "against": args.against}
     result = {"meta": meta, "runs": runs, "regressions": regressions(runs, before, args.tolerance)}
-    path.write_text(json.dumps(result, indent=1))
-    (OUT / f"{args.name}.md").write_text(markdown(result))
-    print(markdown(result))
-    sys.exit(1 if result["regressions"] else 0)
+    if old:
+        result.update(against_runs=old, identity=compare_runs(runs, old))
+    write_result(args.name, result, markdown(result))
+    sys.exit(1 if result["regressions"] or not all(c["identical"] for c in result.get("identity", [])) else 0)
 
 
 if __name__ == "__main__":

@@ -22,8 +22,8 @@ import time
 from pathlib import Path
 
 import torch
+from common import OUT
 
-OUT = Path(__file__).resolve().parent / "results"
 
 
 def worker(out: Path, seconds: float) -> None:

@@ -30,14 +30,12 @@ Writes benchmarks/results/<name>.json and <name>.md.
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import time
-from pathlib import Path
 
 import numpy as np
-from bench_suite import (HOLDOUT_EVERY, IMAGE_ONLY, IMAGE_SCALE, OUT, PATHS, SHARED, load, machine, poses_for,
-                         prepare_synthetic, run_in_processes)
+from common import (HOLDOUT_EVERY, IMAGE_SCALE, commit, load, machine, poses_for, require_shared, run_in_processes,
+                    synthetic_room, write_result)
 
 VARIANTS = {  # name -> config overrides
     "pnerf": dict(loss="pnerf"),
@@ -67,8 +65,8 @@ def run_one(spec: dict) -> dict:
     import open3d_pnerf as pn
     from open3d_pnerf.evaluation import heldout_scores
 
-    seq, _ = load(spec["source"], Path(spec["cache"]))
-    poses, covs = poses_for(spec["source"], seq, "gt", Path(spec["cache"]))
+    seq, _ = load(spec["source"])
+    poses, covs = poses_for(spec["source"], seq)
     d = spec["dataset"]
     cfg = pn.ReconstructionConfig.preset(
         PRESET.get(d, "fast"), max_steps=spec["steps"], time_budget_s=None, holdout_every=HOLDOUT_EVERY.get(d, 4),
@@ -173,33 +171,27 @@ def main():
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise SystemExit(f"unknown variants {unknown}; expected some of {list(VARIANTS)}")
-    missing = [d for d in datasets if d != "synthetic" and not PATHS.get(d, SHARED / "?").is_dir()]
-    if missing:
-        raise SystemExit(f"shared data not found for {missing} (expected under {SHARED})")
-    cache = OUT / "cache"
-    cache.mkdir(parents=True, exist_ok=True)
+    require_shared(*datasets)
     t0 = time.perf_counter()
-    sources = {d: prepare_synthetic(cache, False) if d == "synthetic" else d for d in datasets}
+    sources = {d: synthetic_room() if d == "synthetic" else d for d in datasets}
     if args.split == "tuning" and args.views == 0:
         raise SystemExit("--split tuning scores the frames --views leaves out: give --views")
     specs = [dict(dataset=d, source=sources[d], variant=v, seed=s, views=args.views, steps=args.steps,
-                  threads=args.threads, cache=str(cache), split=args.split)
+                  threads=args.threads, split=args.split)
              for d in datasets for s in seeds for v in variants]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
         f"{r['dataset']:10s} {r['variant']:22s} seed {r['seed']} PSNR {r['model']['psnr']:.2f} "
         f"SSIM {r['model']['ssim']:.3f} {r['train_s']:.0f} s"))
     add_equal_time(results)
-    meta = {"machine": machine(),
+    meta = {"machine": machine(), "commit": commit(),
             "steps": args.steps, "seeds": seeds, "views": args.views, "split": args.split, "threads": args.threads,
             "jobs": args.jobs,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
             "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets},
             "preset": {d: PRESET.get(d, "fast") for d in datasets},
-            "image_only": [d for d in datasets if d in IMAGE_ONLY]}
+            "image_only": [d for d in datasets if d == "fern"]}
     meta["summary"] = summary(results, variants)
-    (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
-    (OUT / f"{args.name}.md").write_text(markdown(results, meta, variants))
-    print((OUT / f"{args.name}.md").read_text())
+    write_result(args.name, {"meta": meta, "runs": results}, markdown(results, meta, variants))
 
 
 if __name__ == "__main__":

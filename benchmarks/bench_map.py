@@ -1,5 +1,5 @@
-"""The map against the sensor alone and Open3D TSDF fusion, fairly: the same frames, poses,
-resolution, extraction threshold and pixels (open3d_pnerf.compare_with_tsdf).
+"""How does the map compare with the sensor alone and Open3D TSDF fusion, per scene? Fairly: the same
+frames, poses, resolution, extraction threshold and pixels (open3d_pnerf.compare_with_tsdf).
 
 Per dataset, loss and seed (the `fast` preset, ground-truth poses, every 4th frame held out,
 320x240), one run scored by compare_with_tsdf: the field's own renders, the exported mesh (the
@@ -15,7 +15,7 @@ spread of their depths calibrated as the model's sigma is: ensemble_rows), at eq
 at equal total steps; the model's depth sigma is scored on every held-out pixel with sensor depth (shares
 inside its 68.3/95.4/99.7% intervals, NLL, AUCE, AUSE). Where the synthetic room's exact mesh is known,
 the exported sigmas (fused depth, mesh vertices) are scored against exact errors.
-Datasets: synthetic (the room of bench_suite.py: 10 training views), synthetic_all (all 36 views,
+Datasets: synthetic (the synthetic room, 48 frames at 640x480: 10 training views), synthetic_all (all 36 views,
 pnerf only), tum (TUM fr1/xyz, 24 training frames), 7scenes (redkitchen 150-199, 38 training
 frames), tum_10 and 7scenes_10 (the same with 10 training views, evenly spaced). The targets of the
 fair comparison are checked per seed at the end.
@@ -25,7 +25,8 @@ fair comparison are checked per seed at the end.
                                    [--ensemble 3]
     python benchmarks/bench_map.py --name map --markdown-only     (the .md again from the .json)
 
-Writes benchmarks/results/<name>.json and <name>.md.
+Writes benchmarks/results/<name>.json and <name>.md, and <name>_<dataset>.png: the first held-out
+frame of each dataset's first pnerf run (input, model, exported mesh, TSDF).
 """
 
 from __future__ import annotations
@@ -34,10 +35,10 @@ import argparse
 import json
 import multiprocessing
 import time
-from pathlib import Path
 
 import numpy as np
-from bench_suite import OUT, PATHS, SHARED, load, machine, poses_for, prepare_synthetic, run_in_processes
+from common import (OUT, PATHS, commit, exact_surface, load, machine, poses_for, require_shared, run_in_processes,
+                    synthetic_room, write_result)
 
 from open3d_pnerf.config import overrides as config_overrides
 
@@ -71,25 +72,24 @@ def run_one(spec: dict) -> dict:
     torch.set_num_threads(spec["threads"])
     import open3d_pnerf as pn
     from open3d_pnerf import compare_with_tsdf
-    from open3d_pnerf.evaluation import (exact_sigma_coverage, geometry_metrics, heldout_views, score_views,
-                                         training_psnr)
+    from open3d_pnerf.evaluation import exact_sigma_coverage, heldout_views, score_views, training_psnr
     from open3d_pnerf.export import export_geometry
+    from open3d_pnerf.metrics import geometry_metrics
 
-    seq, reference = load(spec["source"], Path(spec["cache"]))
-    poses, covs = poses_for(spec["source"], seq, "gt", Path(spec["cache"]))
+    seq, reference = load(spec["source"])
+    poses, covs = poses_for(spec["source"], seq)
     cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=4, train_views=VIEWS[spec["dataset"]],
                                          loss=spec["loss"], seed=spec["seed"], progress=False, **spec["overrides"])
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     t0 = time.perf_counter()
     comparison = compare_with_tsdf(seq, reconstruction=recon, reference=reference, progress=False)
     compare_s = time.perf_counter() - t0
+    if spec.get("figure") and comparison.figures:
+        comparison.figures[0].savefig(spec["figure"], dpi=70)
     table = comparison.table
     table["model"]["psnr_train"] = round(training_psnr(recon, seq), 5)  # beside held-out PSNR: fit or generalise
     if reference is not None:  # the exported sigmas against the exact errors: the mesh's vertices, the fused depth
-        import open3d as o3d
-
-        surface = o3d.io.read_triangle_mesh(str(Path(spec["cache"]) / spec["source"] / "surface.ply"))
-        coverage = exact_sigma_coverage(recon, seq, surface)
+        coverage = exact_sigma_coverage(recon, seq, exact_surface(spec["source"]))
         for row, key in (("mesh", "mesh"), ("fused_depth", "fused_depth")):
             table.setdefault(row, {}).update({f"exact_{k}": v for k, v in coverage.get(key, {}).items()})
     model_only = export_geometry(recon, progress=False).mesh  # the export without the sensor
@@ -290,27 +290,20 @@ def main():
     datasets, losses = args.datasets.split(","), args.losses.split(",")
     seeds = [int(s) for s in args.seeds.split(",")]
     overrides = config_overrides(args.set)
-    missing = [d for d in datasets
-               if not d.startswith("synthetic") and not PATHS.get(SOURCES.get(d, d), SHARED / "?").is_dir()]
-    if missing:
-        raise SystemExit(f"shared data not found for {missing} (expected under {SHARED})")
-    cache = OUT / "cache"
-    cache.mkdir(parents=True, exist_ok=True)
+    require_shared(*(SOURCES.get(d, d) for d in datasets if d in PATHS or d in SOURCES))
     t0 = time.perf_counter()
-    synthetic = prepare_synthetic(cache, False) if any(d.startswith("synthetic") for d in datasets) else None
+    synthetic = synthetic_room() if any(d.startswith("synthetic") for d in datasets) else None
     specs = [dict(dataset=d, source=synthetic if d.startswith("synthetic") else SOURCES.get(d, d), loss=loss, seed=seed,
-                  threads=args.threads, preset=args.preset, cache=str(cache), overrides=overrides,
-                  ensemble=args.ensemble)
+                  threads=args.threads, preset=args.preset, overrides=overrides, ensemble=args.ensemble,
+                  figure=str(OUT / f"{args.name}_{d}.png") if seed == seeds[0] and loss == losses[0] else None)
              for seed in seeds for d in datasets for loss in losses if d not in MESH_ONLY or loss == "pnerf"]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
         f"{r['dataset']:14s} {r['loss']:12s} seed {r['seed']} mesh {r['table']['mesh']} "
         f"sensor {r['table'].get('sensor')} tsdf {r['table'].get('tsdf')}"))
-    meta = {"machine": machine(), "seeds": seeds, "threads": args.threads, "jobs": args.jobs, "preset": args.preset,
+    meta = {"machine": machine(), "commit": commit(), "seeds": seeds, "threads": args.threads, "jobs": args.jobs, "preset": args.preset,
             "overrides": overrides, "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS,
             "ensemble": args.ensemble}
-    (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
-    (OUT / f"{args.name}.md").write_text(markdown(results, meta))
-    print((OUT / f"{args.name}.md").read_text())
+    write_result(args.name, {"meta": meta, "runs": results}, markdown(results, meta))
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 Per scene and seed, the recording is cut into consecutive segments (each a multiple of 4 frames,
 so that every 4th frame of each segment is held out both ways). Incremental: `reconstruct` the
 first segment (the `fast` preset, ground-truth poses), then `Reconstruction.extend` it with each
-next segment (its default: pipeline.EXTENSION_BUDGET of the map's steps at its learning rate;
+next segment (its default: extension.EXTENSION_BUDGET of the map's steps at its learning rate;
 --extension-budget and --extension-lr try others). After each extension, a
 reconstruction trained from scratch on all the segments so far with the same total number of
 steps as the incremental map has had. Both scored on the held-out frames of all segments so
@@ -37,9 +37,9 @@ import resource
 import time
 
 import numpy as np
-from bench_suite import OUT, PATHS, SHARED, machine, run_in_processes
+from common import OUT, PATHS, commit, machine, require_shared, run_in_processes, write_result
 
-from open3d_pnerf.pipeline import EXTENSION_BUDGET
+from open3d_pnerf.extension import EXTENSION_BUDGET
 
 SEGMENT_MULTIPLE = 4  # = holdout_every: the held-out frames are the same in a segment and in the concatenation
 
@@ -128,7 +128,7 @@ def _stream(pn, spec: dict) -> dict:
     """The streaming Mapper over the whole recording at 320x240, against the offline reconstruction."""
     from tqdm.auto import tqdm
 
-    from open3d_pnerf.pipeline import fit
+    from open3d_pnerf.stages import finish, fit
 
     seq = pn.load_sequence(PATHS[spec["scene"]], image_scale=0.5)
     cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=SEGMENT_MULTIPLE, seed=spec["seed"],
@@ -141,8 +141,10 @@ def _stream(pn, spec: dict) -> dict:
     t0 = time.perf_counter()
     recon = mapper.finish()
     finish_s = time.perf_counter() - t0
-    offline = fit(recon.frames, cfg, recon.poses, recon.covariances, recon.train_indices, recon.holdout_indices,
-                  {"tracked": True}, {}, tqdm(disable=True), time.perf_counter())
+    timings, stages = {}, tqdm(disable=True)
+    offline = pn.Reconstruction(**fit(recon.frames, cfg, recon.poses, recon.covariances, recon.train_indices,
+                                      recon.holdout_indices, {"tracked": True}, timings, stages))
+    finish(offline, recon.frames, timings, stages, time.perf_counter())
     return {"frames": len(seq), "frames_per_s": round(len(seq) / streaming, 2), "summary": mapper.summary(),
             "finish_s": round(finish_s, 1), "ate_mm": round(1000 * pn.absolute_trajectory_error(
                 mapper.poses, seq.gt_poses)["rmse"], 2),
@@ -286,9 +288,7 @@ def main():
         (OUT / f"{args.name}.md").write_text(markdown(saved["runs"], saved["meta"]))
         return
     scenes, seeds = args.scenes.split(","), [int(s) for s in args.seeds.split(",")]
-    missing = [s for s in scenes if not PATHS.get(s, SHARED / "?").is_dir()]
-    if missing:
-        raise SystemExit(f"shared data not found for {missing} (expected under {SHARED})")
+    require_shared(*scenes)
     common = dict(segments=args.segments, threads=args.threads, preset=args.preset,
                   extension_budget=args.extension_budget, extension_lr=args.extension_lr)
     kinds = args.kinds.split(",")
@@ -301,12 +301,10 @@ def main():
         specs += [dict(scene=s, seed=0, kind="tracking", upto=None, **common) for s in scenes]
     t0 = time.perf_counter()
     results = run_in_processes(run_one, specs, args.jobs, lambda r: f"{r['scene']} seed {r['seed']} {r['kind']} done")
-    meta = {"machine": machine(), "seeds": seeds, "segments": args.segments, "kinds": kinds, "threads": args.threads,
+    meta = {"machine": machine(), "commit": commit(), "seeds": seeds, "segments": args.segments, "kinds": kinds, "threads": args.threads,
             "jobs": args.jobs, "preset": args.preset, "extension_budget": args.extension_budget,
             "extension_lr": args.extension_lr, "wall_minutes": round((time.perf_counter() - t0) / 60, 1)}
-    (OUT / f"{args.name}.json").write_text(json.dumps({"meta": meta, "runs": results}, indent=1))
-    (OUT / f"{args.name}.md").write_text(markdown(results, meta))
-    print((OUT / f"{args.name}.md").read_text())
+    write_result(args.name, {"meta": meta, "runs": results}, markdown(results, meta))
 
 
 if __name__ == "__main__":

@@ -23,7 +23,8 @@ import threading
 import time
 from pathlib import Path
 
-OUT = Path(__file__).resolve().parent / "results"
+from common import OUT
+
 
 
 class RSSSampler(threading.Thread):

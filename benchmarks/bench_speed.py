@@ -1,5 +1,5 @@
-"""Speed on this CPU: where a training step and a render spend their time, and the fused hash-grid
-kernel against the pure-PyTorch path, side by side in one run.
+"""How fast does it train and render on this CPU? Where a training step and a render spend their time,
+and the fused hash-grid kernel against the pure-PyTorch path, side by side in one run.
 
 TUM fr1/xyz from ../shared/data (the bundled sample without it), every 4th frame held out, poses
 from our tracking, the default config (`fast` preset, hash grid 8 levels 16..2048, 512 rays x 40
@@ -14,12 +14,9 @@ samples a step) unless stated. Sections, all in this one run, on `--threads` tor
    and seed: the largest parameter and loss differences (floating-point summation order differs);
 4. bf16 check: `kernel` and `kernel+bf16` trained `--equal-steps` steps, `--seeds` seeds: held-out
    PSNR, SSIM and depth error, to show whether bfloat16 costs quality;
-5. export: training and export seconds of a `fast` reconstruct() with the default config;
-6. quality in a third of the time (`--quality`): held-out PSNR of `fast` runs with the default
-   config stopped at `--short` seconds against the previous release's `fast` preset (1500 steps or
-   150 s), `--seeds` seeds each.
+5. export: training and export seconds of a `fast` reconstruct() with the default config.
 
-    python benchmarks/bench_speed.py [--threads 2] [--quality --seeds 2] [--quick]
+    python benchmarks/bench_speed.py [--threads 2] [--seeds 2] [--quick]
     python benchmarks/bench_speed.py --against REV --name speed_against_REV
 
 Writes benchmarks/results/<name>.json and <name>.md (name: speed). --against REV measures only
@@ -37,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import OUT, PATHS, Revision, commit
 
 import open3d_pnerf as pn
 from open3d_pnerf.batches import RayBatcher
@@ -44,21 +42,13 @@ from open3d_pnerf.config import overrides as config_overrides
 from open3d_pnerf.evaluation import heldout_scores
 from open3d_pnerf.fields import native
 from open3d_pnerf.model import build_model
-from open3d_pnerf.pipeline import split_frames
-from open3d_pnerf.scene import training_box
 from open3d_pnerf.reconstruction import Reconstruction
+from open3d_pnerf.scene import training_box
+from open3d_pnerf.stages import split_frames
 from open3d_pnerf.training import Trainer
 
-try:
-    from previous import PreviousRelease
-except ImportError:  # imported as benchmarks.bench_speed
-    from benchmarks.previous import PreviousRelease
-
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-TUM = SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz"
-OUT = Path(__file__).resolve().parent / "results"
-PREVIOUS = "e7fdb54"  # the library before the kernel, the inference renderer and bfloat16 MLPs
-PATHS = {  # name -> config overrides
+TUM = PATHS["tum"]
+SPEED_PATHS = {  # name -> config overrides
     "pytorch": {"hashgrid.backend": "torch", "runtime.bf16_mlp": False},  # the pure-PyTorch path, all float32
     "kernel": {"hashgrid.backend": "kernel", "runtime.bf16_mlp": False},  # the fused hash-grid kernel
     "kernel+bf16": {"hashgrid.backend": "kernel", "runtime.bf16_mlp": True},  # and bfloat16 MLP products
@@ -66,7 +56,7 @@ PATHS = {  # name -> config overrides
 
 
 def config(path: str, **overrides) -> pn.ReconstructionConfig:
-    return pn.ReconstructionConfig.preset("fast", holdout_every=4, progress=False, **{**PATHS[path], **overrides})
+    return pn.ReconstructionConfig.preset("fast", holdout_every=4, progress=False, **{**SPEED_PATHS[path], **overrides})
 
 
 def trainer_for(seq, poses, cfg) -> Trainer:
@@ -84,58 +74,6 @@ def reconstruction_of(trainer: Trainer, seq, poses) -> Reconstruction:
     train, hold = split_frames(len(seq), cfg.holdout_every)
     return Reconstruction(trainer.model, cfg, poses, np.zeros((len(seq), 6, 6)), trainer.batcher.sequence.intrinsic,
                           train, hold)
-
-
-PREVIOUS_SCRIPT = """
-import json, sys, time
-import numpy as np, torch
-import open3d_pnerf as pn
-from open3d_pnerf.evaluation import heldout_scores
-from open3d_pnerf.reconstruction import Reconstruction, build_field, scene_box, split_frames
-from open3d_pnerf.training import RayBatcher, Trainer
-
-args = json.loads(sys.argv[1])
-torch.set_num_threads(args["threads"])
-seq = pn.load_sequence(args["data"]) if args["data"] != "sample" else pn.load_sample()
-poses, covs = np.load(args["poses"]), np.load(args["covariances"])
-out = {}
-if args["task"] == "speed":
-    cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, progress=False)
-    train, hold = split_frames(len(seq), 4)
-    ts = seq.select(train).rescaled(cfg.image_scale)
-    targets = pn.depth_targets(ts, poses=poses[train], progress=False)
-    field = build_field(cfg, scene_box(targets, poses[train], ts.K))
-    trainer = Trainer(field, RayBatcher(ts, poses[train], targets, field.aabb, "cpu", cfg.seed), cfg)
-    for _ in range(3):
-        trainer.train_step()
-    times = []
-    for _ in range(args["rounds"]):
-        t0 = time.perf_counter()
-        for _ in range(args["steps"]):
-            trainer.train_step()
-        times.append((time.perf_counter() - t0) / args["steps"])
-    out["ms_per_step_each_round"] = [round(1000 * t, 1) for t in times]
-    out["samples_per_s"] = round(trainer.samples_seen / (3 + args["rounds"] * args["steps"]) / float(np.median(times)))
-    recon = Reconstruction(field, cfg, poses, covs, ts.intrinsic, field.aabb.numpy(), train, hold)
-    full = pn.data.sequence.scale_intrinsic(seq.intrinsic, 640 / seq.intrinsic.width)
-    renders = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        recon.render(poses[1], full)
-        renders.append(time.perf_counter() - t0)
-    out["render_640x480_s"] = round(float(np.median(renders)), 3)
-else:
-    budget = {"time_budget_s": args["budget"]} if args.get("budget") else {}
-    cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, progress=False, seed=args["seed"], **budget)
-    recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
-    scores = heldout_scores(recon, seq)["model"]
-    t = recon.stats["timings"]
-    train_s = t["total_s"] - t["export_s"] - t["tracking_s"] - t["targets_s"]
-    out = {"psnr": round(scores["psnr"], 3), "ssim": round(scores["ssim"], 4),
-           "depth_l1_mm": round(1000 * scores["depth_l1"], 1), "steps": recon.stats["training"]["steps"],
-           "training_s": round(train_s, 1), "export_s": t["export_s"]}
-print("RESULT " + json.dumps(out))
-"""
 
 
 AGAINST_SCRIPT = """
@@ -165,7 +103,7 @@ def against(revision: str, args: dict, rounds: int) -> dict:
     subprocess, taking turns for `rounds` rounds (the machine's speed swings hit both alike);
     medians, and the median over rounds of the paired ratios (this tree's speed / revision's)."""
     runs: dict[str, list] = {"this tree": [], revision: []}
-    with PreviousRelease(revision) as previous:
+    with Revision(revision) as previous:
         args = {**args, "poses": previous.save("poses", args.pop("poses")),
                 "covariances": previous.save("covariances", args.pop("covariances"))}
         for _ in range(rounds):
@@ -275,10 +213,7 @@ def main():
     ap.add_argument("--steps", type=int, default=8, help="training steps per timed block")
     ap.add_argument("--agree-steps", type=int, default=20, help="steps of the agreement check")
     ap.add_argument("--equal-steps", type=int, default=800, help="steps of the bf16 check (0: skip it)")
-    ap.add_argument("--quality", action="store_true", help="also the quality-at-equal-time runs (~15 min)")
-    ap.add_argument("--seeds", type=int, default=2, help="seeds of the bf16 check and the quality runs")
-    ap.add_argument("--short", type=float, default=50.0, help="training seconds of the default path's quality runs")
-    ap.add_argument("--previous", default=PREVIOUS, help="git revision of the previous release to measure against")
+    ap.add_argument("--seeds", type=int, default=2, help="seeds of the bf16 check")
     ap.add_argument("--against", metavar="REV",
                     help="only this: training and render speed of this tree against the library at git revision REV "
                     "(fresh processes taking turns, --rounds rounds of --against-steps steps); writes <name>.json/md")
@@ -291,7 +226,7 @@ def main():
     export_budget = 150.0
     if args.quick:
         args.rounds, args.steps, args.agree_steps, args.equal_steps, args.seeds = 1, 2, 2, 5, 1
-        args.short, export_budget = 5.0, 10.0
+        export_budget = 10.0
     torch.set_num_threads(args.threads)
     if not native.available():
         sys.exit("the fused kernel cannot be built here (no C++ compiler?): nothing to compare")
@@ -300,10 +235,10 @@ def main():
     trajectory = pn.ReconstructionConfig().tracking.track(seq, progress=False)
     poses, covs = trajectory.poses, trajectory.covariances
     report = {"machine": {"platform": platform.platform(), "processor": platform.processor(), "threads": args.threads,
-                          "torch": torch.__version__},
+                          "torch": torch.__version__}, "commit": commit(),
               "data": f"{seq.name}, {len(seq)} frames, every 4th held out, 320x240 training images",
-              "paths": PATHS, "default_path": {k: pn.ReconstructionConfig().to_dict()[k.split(".")[0]][k.split(".")[1]]
-                                               for k in PATHS["pytorch"]}}
+              "paths": SPEED_PATHS, "default_path": {
+                  k: pn.ReconstructionConfig().to_dict()[k.split(".")[0]][k.split(".")[1]] for k in SPEED_PATHS["pytorch"]}}
     if args.against:
         report["against"] = against(args.against, {"data": str(TUM) if TUM.is_dir() else "sample",
                                                    "threads": args.threads, "steps": args.against_steps,
@@ -315,59 +250,29 @@ def main():
         (OUT / f"{args.name}.md").write_text(against_markdown(report))
         print(against_markdown(report))
         return
-    previous = PreviousRelease(args.previous)
-    common = {"data": str(TUM) if TUM.is_dir() else "sample", "threads": args.threads,
-              "poses": previous.save("poses", poses), "covariances": previous.save("covariances", covs)}
-    try:
-        speed_before = previous.run(PREVIOUS_SCRIPT, {**common, "task": "speed", "rounds": args.rounds,
-                                                      "steps": args.steps})
-        trainers = {path: trainer_for(seq, poses, config(path)) for path in PATHS}
-        report["throughput"] = throughput(trainers, args.rounds, args.steps)
-        recons = {path: reconstruction_of(t, seq, poses) for path, t in trainers.items()}
-        full = pn.camera.scale_intrinsic(seq.intrinsic, 640 / seq.intrinsic.width)
-        report["render_640x480_s"] = render_seconds(recons, poses[1], full)
-        speed_after = previous.run(PREVIOUS_SCRIPT, {**common, "task": "speed", "rounds": args.rounds,
-                                                     "steps": args.steps})  # before and after: drift shows
-        report["previous_release"] = {"revision": args.previous, "measured_before_and_after": [speed_before, speed_after]}
-        report["throughput"]["previous release"] = {
-            "samples_per_s": round(np.mean([s["samples_per_s"] for s in (speed_before, speed_after)]))}
-        report["render_640x480_s"]["previous release"] = round(
-            float(np.mean([s["render_640x480_s"] for s in (speed_before, speed_after)])), 3)
-        print("throughput:", report["throughput"], flush=True)
-        report["profile"] = {path: profile(trainers[path], recons[path], poses[1], 5) for path in PATHS}
-        report["ratios"] = {
-            path: {"training_to_pytorch_path": round(report["throughput"][path]["samples_per_s"]
-                                                     / report["throughput"]["pytorch"]["samples_per_s"], 2),
-                   "training_to_previous_release": round(report["throughput"][path]["samples_per_s"]
-                                                         / report["throughput"]["previous release"]["samples_per_s"], 2),
-                   "render_to_previous_release": round(report["render_640x480_s"]["previous release"]
-                                                       / report["render_640x480_s"][path], 2)}
-            for path in PATHS}
-        print("ratios:", report["ratios"], flush=True)
-        del trainers, recons
-        report["agreement"] = agreement(seq, poses, args.agree_steps)
-        print("agreement:", report["agreement"], flush=True)
-        if args.equal_steps:
-            report["bf16_equal_steps"] = {
-                f"{path}_seed{seed}": reconstruct_timed(seq, poses, covs, config(path, max_steps=args.equal_steps,
-                                                                                 time_budget_s=None, seed=seed))
-                for seed in range(args.seeds) for path in ("kernel", "kernel+bf16")}
-            print("bf16 check:", report["bf16_equal_steps"], flush=True)
-        report["export"] = reconstruct_timed(seq, poses, covs, pn.ReconstructionConfig.preset(
-            "fast", holdout_every=4, progress=False, time_budget_s=export_budget))
-        print("export:", report["export"], flush=True)
-        if args.quality:  # the default config at a third of the time against the previous release's fast preset
-            report["quality"] = {}
-            for seed in range(args.seeds):
-                cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, progress=False, seed=seed,
-                                                     time_budget_s=args.short, max_steps=10**6)
-                report["quality"][f"default_{args.short:g}s_seed{seed}"] = reconstruct_timed(seq, poses, covs, cfg)
-                report["quality"][f"previous_release_fast_seed{seed}"] = previous.run(
-                    PREVIOUS_SCRIPT, {**common, "task": "quality", "seed": seed,
-                                      "budget": 3 * args.short if args.quick else None})
-                print(seed, {k: v for k, v in report["quality"].items() if k.endswith(f"seed{seed}")}, flush=True)
-    finally:
-        previous.close()
+    trainers = {path: trainer_for(seq, poses, config(path)) for path in SPEED_PATHS}
+    report["throughput"] = throughput(trainers, args.rounds, args.steps)
+    recons = {path: reconstruction_of(t, seq, poses) for path, t in trainers.items()}
+    full = pn.camera.scale_intrinsic(seq.intrinsic, 640 / seq.intrinsic.width)
+    report["render_640x480_s"] = render_seconds(recons, poses[1], full)
+    print("throughput:", report["throughput"], flush=True)
+    report["profile"] = {path: profile(trainers[path], recons[path], poses[1], 5) for path in SPEED_PATHS}
+    report["ratios"] = {path: {"training_to_pytorch_path": round(report["throughput"][path]["samples_per_s"]
+                                                                 / report["throughput"]["pytorch"]["samples_per_s"], 2),
+                               "render_to_pytorch_path": round(report["render_640x480_s"]["pytorch"]
+                                                               / report["render_640x480_s"][path], 2)}
+                        for path in SPEED_PATHS}
+    del trainers, recons
+    report["agreement"] = agreement(seq, poses, args.agree_steps)
+    print("agreement:", report["agreement"], flush=True)
+    if args.equal_steps:
+        report["bf16_equal_steps"] = {
+            f"{path}_seed{seed}": reconstruct_timed(seq, poses, covs, config(path, max_steps=args.equal_steps,
+                                                                             time_budget_s=None, seed=seed))
+            for seed in range(args.seeds) for path in ("kernel", "kernel+bf16")}
+        print("bf16 check:", report["bf16_equal_steps"], flush=True)
+    report["export"] = reconstruct_timed(seq, poses, covs, pn.ReconstructionConfig.preset(
+        "fast", holdout_every=4, progress=False, time_budget_s=export_budget))
     report["total_minutes"] = round((time.perf_counter() - t_start) / 60, 1)
     OUT.mkdir(exist_ok=True)
     (OUT / f"{args.name}.json").write_text(json.dumps(report, indent=1))
@@ -394,18 +299,14 @@ def against_markdown(r: dict) -> str:
 
 def markdown(r: dict) -> str:
     t, ratio, render = r["throughput"], r["ratios"], r["render_640x480_s"]
-    lines = ["# Speed (`python benchmarks/bench_speed.py --quality`)", "", f"Data: {r['data']}; {r['machine']['threads']} threads; {r['total_minutes']} min in all. Paths: "
+    lines = ["# Speed (`python benchmarks/bench_speed.py`)", "", f"Data: {r['data']}; {r['machine']['threads']} "
+             f"threads; {r['total_minutes']} min in all; commit {r.get('commit')}. Paths: "
              + "; ".join(f"`{name}` = {overrides}" for name, overrides in r["paths"].items())
-             + f"; the default config is {r['default_path']}; `previous release` = the library at "
-             f"{r['previous_release']['revision']} (pure-PyTorch hash grid, float32, its renderer), run in a "
-             "subprocess on the same data, poses and threads before and after the others (the mean).", "",
-             "| path | training samples/s | x previous release | x `pytorch` path | 640x480 render (s) | "
-             "x previous release |", "| --- | --- | --- | --- | --- | --- |",
-             f"| previous release | {t['previous release']['samples_per_s']:,} | 1 | - | {render['previous release']} "
-             "| 1 |"]
-    lines += [f"| {p} | {t[p]['samples_per_s']:,} | {ratio[p]['training_to_previous_release']} | "
-              f"{ratio[p]['training_to_pytorch_path']} | {render[p]} | {ratio[p]['render_to_previous_release']} |"
-              for p in r["paths"]]
+             + f"; the default config is {r['default_path']}.", "",
+             "| path | training samples/s | x `pytorch` path | 640x480 render (s) | x `pytorch` path |",
+             "| --- | --- | --- | --- | --- |"]
+    lines += [f"| {p} | {t[p]['samples_per_s']:,} | {ratio[p]['training_to_pytorch_path']} | {render[p]} | "
+              f"{ratio[p]['render_to_pytorch_path']} |" for p in r["paths"]]
     lines += ["", "| region (ms per training step, profiled) | " + " | ".join(r["paths"]) + " |",
               "| --- |" + " --- |" * len(r["paths"])]
     regions = dict.fromkeys(k for p in r["paths"] for k in r["profile"][p]["train_step_ms"]["regions"])
@@ -417,9 +318,7 @@ def markdown(r: dict) -> str:
               f"weights and seed: losses within {a['max_rel_loss_diff']:.1e} (relative) at every step; renders of a "
               f"held-out view after them within {a['max_abs_color_diff']:.1e} in colour and "
               f"{1000 * a['max_abs_depth_diff_m']:.2g} mm in depth.", ""]
-    for key, title in (("bf16_equal_steps", "bfloat16 MLP products at equal steps"),
-                       ("quality", "quality: the default config stopped at 50 s against the previous release's fast preset "
-                                   "(1500 steps or 150 s)")):
+    for key, title in (("bf16_equal_steps", "bfloat16 MLP products at equal steps"),):
         if key in r:
             lines += [f"{title}:", "", "| run | held-out PSNR (dB) | SSIM | depth L1 (mm) | steps | training s |",
                       "| --- | --- | --- | --- | --- | --- |"]

@@ -34,11 +34,9 @@ Writes benchmarks/results/tracking.json and tracking.md.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -50,26 +48,16 @@ from open3d_pnerf.synthetic import room_scene, synthetic_sequence
 from open3d_pnerf.targets import depth_targets
 from open3d_pnerf.tracking import OdometryOptions, absolute_trajectory_error, consistency_of_errors, pose_errors, track
 
-try:
-    from previous import PreviousRelease
-except ImportError:  # run from the repository root as a module
-    from benchmarks.previous import PreviousRelease
+from common import PATHS, Revision, commit, require_shared, write_result
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-REAL = {
-    "tum_fr1_xyz": DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz",
-    "7scenes_150-199": DATA / "7scenes_redkitchen" / "frames_150-199",
-}
+REAL = {"tum_fr1_xyz": PATHS["tum"], "7scenes_150-199": PATHS["7scenes"]}
 HALVES = {"tum_fr1_xyz": ((0, 16), (16, 32)), "7scenes_150-199": ((0, 25), (25, 50))}
 """Per sequence, (tuning half, report half) as frame ranges of its sequence."""
 GT_TIME_OFFSET = {"tum_fr1_xyz": -0.025}
 """Seconds added to a real sequence's frame times where its ground truth is read (load_sequence's
 gt_time_offset): fr1/xyz's motion capture agrees best with the tracked steps' rotations that much
-early. Chosen on frames 0-15 by bench_tracking_tuning.py (results/tracking_tuning.md)."""
-OFFSET_GRID = np.round(np.arange(-0.06, 0.0151, 0.005), 3)
-"""The offsets (s) that choice and bench_tracking_axes.py's check with a second tracker try."""
-EVERY10 = DATA / "7scenes_redkitchen" / "every10th_0-990"
-OUT = Path(__file__).resolve().parent / "results"
+early. Chosen on frames 0-15 (docs/benchmarks.md: where the constants come from)."""
+EVERY10 = PATHS["7scenes_every10"]
 PREVIOUS = "4dc4fa7"  # the tracker of the release e7fdb54 (4dc4fa7 only restructured it): point_noise_m = 2
 WRONG_NEES = float(chi2.ppf(0.99, 6))  # a frame's 6-dof NEES above this: its covariance does not cover its error
 
@@ -156,7 +144,7 @@ def real_sequence(name: str):
     return load_sequence(REAL[name], gt_time_offset=GT_TIME_OFFSET.get(name, 0.0))
 
 
-def real_section(previous: PreviousRelease, scales) -> dict:
+def real_section(previous: Revision, scales) -> dict:
     out = {}
     for name, path in REAL.items():
         full = real_sequence(name)
@@ -251,7 +239,7 @@ def target_coverage(data, poses, covariances) -> dict:
             **{f"within_{k}_sigma": round(float((ratios <= k).mean()), 3) for k in (1, 2, 3)}}
 
 
-def downstream_section(previous: PreviousRelease, cases) -> dict:
+def downstream_section(previous: Revision, cases) -> dict:
     out = {}
     for n, seed in cases:
         data = synthetic_sequence(n, 320, 240, seed=seed)
@@ -329,11 +317,11 @@ def main() -> None:
     ap.add_argument("--previous", default=PREVIOUS, help="git revision of the tracker to compare with")
     ap.add_argument("--quick", action="store_true", help="a smoke test of the script: tiny everything")
     args = ap.parse_args()
-    if not DATA.is_dir():
-        raise SystemExit(f"shared data not found at {DATA}")
+    require_shared("tum", "7scenes", "7scenes_every10")
     start = time.perf_counter()
-    report = {"machine": {"platform": platform.platform(), "open3d": o3d.__version__}, "previous": args.previous}
-    with PreviousRelease(args.previous) as previous:
+    report = {"machine": {"platform": platform.platform(), "open3d": o3d.__version__}, "commit": commit(),
+              "previous": args.previous}
+    with Revision(args.previous) as previous:
         if args.quick:
             report["real"] = real_section(previous, (0.5,))
             report["halves"] = halves_section((0.5,))
@@ -348,9 +336,7 @@ def main() -> None:
             report["downstream"] = downstream_section(previous, [(40, 0), (100, 3)])
     report["total_minutes"] = round((time.perf_counter() - start) / 60, 1)
     name = "tracking_quick" if args.quick else "tracking"
-    OUT.mkdir(exist_ok=True)
-    (OUT / f"{name}.json").write_text(json.dumps(report, indent=1) + "\n")
-    (OUT / f"{name}.md").write_text(markdown(report))
+    write_result(name, report, markdown(report))
     print(markdown(report))
 
 

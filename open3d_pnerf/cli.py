@@ -1,4 +1,4 @@
-"""The `open3d-pnerf` command line: demo, reconstruct, extend, map, track, tsdf, render, evaluate.
+"""The `open3d-pnerf` command line: demo, reconstruct, extend, map, track, tsdf, render, evaluate, formats.
 
 Errors a user can fix are printed as one line (`open3d-pnerf: error: ...`) with exit code 2;
 Ctrl-C exits with 130 after training has written its checkpoint. `reconstruct` and `demo`
@@ -21,7 +21,7 @@ import open3d as o3d
 from .comparison import scores_table
 from .config import ReconstructionConfig
 from .config import overrides as config_overrides
-from .data import load_sample, load_sequence
+from .data import FORMATS, load_sample, load_sequence
 from .data.devices import camera_frames
 from .distributed import BACKENDS
 from .errors import DatasetError, InputError, PNeRFError, TrainingInterrupted
@@ -214,6 +214,14 @@ def cmd_evaluate(args) -> int:
     return EXIT_OK
 
 
+def cmd_formats(args) -> int:
+    print("DATA may be a folder (or a recording file) in any of these layouts, tried in this order:\n")
+    for fmt in FORMATS:
+        print(f"  {fmt.name}: {fmt.layout}")
+    print("\nload_sequence(path) in Python reads the same; open3d_pnerf.data.register_format adds your own.")
+    return EXIT_OK
+
+
 def _add_training_options(p, preset: bool = True):
     defaults = ReconstructionConfig()
     if preset:
@@ -327,6 +335,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tsdf", action=argparse.BooleanOptionalAction, default=True,
                    help="also score the TSDF baseline (default: yes)")
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("formats", help="the input layouts DATA may have (what load_sequence detects)")
+    p.set_defaults(func=cmd_formats)
     return parser
 
 

@@ -14,9 +14,10 @@ import pytest
 
 from open3d_pnerf import cli
 
-COMMANDS = ("demo", "reconstruct", "extend", "track", "tsdf", "render", "evaluate")
+COMMANDS = ("demo", "reconstruct", "extend", "map", "track", "tsdf", "render", "evaluate", "formats")
 
 
+@pytest.mark.slow
 def test_help_lists_every_command():
     out = subprocess.run([sys.executable, "-m", "open3d_pnerf.cli", "--help"], capture_output=True, text=True)
     assert out.returncode == 0
@@ -30,6 +31,15 @@ def test_every_command_has_help(command, capsys):
         cli.main([command, "--help"])
     assert exc.value.code == 0
     assert "usage" in capsys.readouterr().out
+
+
+def test_formats_lists_every_layout_load_sequence_detects_in_its_order(capsys):
+    from open3d_pnerf.data import FORMATS
+
+    assert cli.main(["formats"]) == 0
+    out = capsys.readouterr().out
+    positions = [out.index(f"{fmt.name}: {fmt.layout}") for fmt in FORMATS]
+    assert len(FORMATS) >= 5 and positions == sorted(positions)
 
 
 def test_missing_folder_is_one_clear_line(tmp_path, capsys):
@@ -104,6 +114,7 @@ def test_render_rejects_bad_pose(tmp_path, capsys):
 
 @pytest.mark.skipif(shutil.which("open3d-pnerf") is None and not (Path(sys.executable).parent / "open3d-pnerf").exists(),
                     reason="console script not installed")
+@pytest.mark.slow
 def test_console_script_installed():
     exe = shutil.which("open3d-pnerf") or str(Path(sys.executable).parent / "open3d-pnerf")
     out = subprocess.run([exe, "--help"], capture_output=True, text=True)
@@ -243,6 +254,7 @@ def test_ctrl_c_during_training_exits_130_saying_how_to_resume_or_finish(tmp_pat
         cli.main(["reconstruct", "sample", "--finish"])
 
 
+@pytest.mark.slow
 def test_insisting_on_a_kernel_that_cannot_run_is_one_config_error_before_any_work(tmp_path):
     """hashgrid.backend=kernel where the kernel cannot run (here: turned off) fails at the config,
     before tracking or targets, as one line; in Python, as a ConfigError from validate()."""

@@ -233,6 +233,7 @@ def test_bad_backends_and_timeouts_are_config_errors(no_launch):
     assert not dist.is_initialized()
 
 
+@pytest.mark.slow
 def test_joining_without_the_other_ranks_times_out_with_a_clear_error(no_launch):
     for key, value in {"RANK": "0", "WORLD_SIZE": "2", "MASTER_ADDR": "127.0.0.1",
                        "MASTER_PORT": str(free_port())}.items():
@@ -245,6 +246,7 @@ def test_joining_without_the_other_ranks_times_out_with_a_clear_error(no_launch)
 
 
 # -- real ranks ---------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_two_ranks_train_the_same_parameters_as_one_process(tmp_path):
     overrides = {**SMALL, "max_steps": 6}
     alone, pair = tmp_path / "alone", tmp_path / "pair"
@@ -273,6 +275,7 @@ def test_two_ranks_train_the_same_parameters_as_one_process(tmp_path):
     assert torch.load(pair / "checkpoints" / "checkpoint.pt", weights_only=True)["step"] == 6
 
 
+@pytest.mark.slow
 def test_cli_reconstruct_under_torchrun_matches_one_process(tmp_path, no_launch):
     args = ["--quiet", "reconstruct", "sample", "--preset", "test", "--gt-poses", "--max-steps", "4",
             "--rays-per-batch", "96", "--set", "runtime.bf16_mlp=false"]  # float32: see SMALL
@@ -290,6 +293,7 @@ def test_cli_reconstruct_under_torchrun_matches_one_process(tmp_path, no_launch)
     assert sorted(p.name for p in (tmp_path / "two").iterdir()) == sorted(p.name for p in (tmp_path / "one").iterdir())
 
 
+@pytest.mark.slow
 def test_a_rank_that_dies_makes_the_other_fail_fast_with_a_clear_error(tmp_path):
     procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "runtime.checkpoint_every": 1, "runtime.dist_timeout_s": 10})
     try:
@@ -306,6 +310,7 @@ def test_a_rank_that_dies_makes_the_other_fail_fast_with_a_clear_error(tmp_path)
     assert "another rank has probably died or hung" in err
 
 
+@pytest.mark.slow
 def test_a_hung_rank_makes_the_other_time_out_with_a_clear_error(tmp_path):
     procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "runtime.checkpoint_every": 1, "runtime.dist_timeout_s": 3})
     try:
@@ -321,6 +326,7 @@ def test_a_hung_rank_makes_the_other_time_out_with_a_clear_error(tmp_path):
     assert "did not complete within 3 s (dist_timeout_s)" in err and "Timed out" in err
 
 
+@pytest.mark.slow
 def test_ctrl_c_on_one_rank_stops_every_rank_after_the_same_step(tmp_path):
     procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "runtime.checkpoint_every": 1})
     try:
@@ -335,6 +341,7 @@ def test_ctrl_c_on_one_rank_stops_every_rank_after_the_same_step(tmp_path):
     assert torch.load(tmp_path / "checkpoints" / "checkpoint.pt", weights_only=True)["step"] == steps[0]
 
 
+@pytest.mark.slow
 def test_a_time_budget_stops_every_rank_after_the_same_step(tmp_path):
     procs = start_ranks(tmp_path, {**SMALL, "max_steps": 10**6, "time_budget_s": 1.5})
     try:

@@ -405,6 +405,7 @@ def put_a_library_whose_runtime_is_gone_in_the_cache(tmp_path) -> None:
     pytest.param("a missing runtime", "libgone_omp.so: cannot open shared object file",
                  marks=pytest.mark.skipif(shutil.which("cc") is None, reason="needs a C compiler to build the case")),
 ])
+@pytest.mark.slow
 def test_every_build_or_load_failure_falls_back_to_pytorch_with_one_warning_naming_the_cause(case, cause, tmp_path):
     env = {}
     if case == "no compiler":  # a machine without g++: nothing on PATH
@@ -437,12 +438,14 @@ def test_the_kernel_builds_with_the_ninja_package_when_none_is_on_path(tmp_path,
     assert os.environ["PATH"] == str(tmp_path)
 
 
+@pytest.mark.slow
 def test_pnerf_native_0_turns_the_kernel_off_without_a_warning(tmp_path):
     run = run_isolated(FALLBACK, tmp_path, PNERF_NATIVE="0")
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip().split("\n")[0] == "0"
 
 
+@pytest.mark.slow
 def test_a_kernel_built_once_loads_from_its_cache_without_building(tmp_path):
     script = ("import time; from open3d_pnerf.fields import native; t = time.perf_counter(); "
               "print(native.unavailable_reason(), round(time.perf_counter() - t, 1))")

@@ -388,6 +388,7 @@ def test_cli_reconstructs_and_evaluates_an_llff_folder(tmp_path, capsys):
     assert "No depth images" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 @pytest.mark.data
 def test_reconstruct_learns_the_held_out_fern_views_from_ten_images(shared_data):
     """The paper's protocol at a smoke-test size: every 8th image held out, 10 training views."""

@@ -32,6 +32,8 @@ EXPECTED_OUTPUTS = {
 sys.path.insert(0, str(NOTEBOOK_DIR))
 from run_notebooks import execute  # noqa: E402  (notebooks/run_notebooks.py: `make notebooks`)
 
+pytestmark = pytest.mark.slow  # every test here executes whole notebooks
+
 
 def code_cells(nb) -> list:
     return [cell for cell in nb.cells if cell.cell_type == "code"]

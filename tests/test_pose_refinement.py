@@ -66,6 +66,7 @@ def test_bad_pose_refinement_settings_raise_config_error():
             ReconstructionConfig.preset("test", **{field: value})
 
 
+@pytest.mark.slow
 def test_refinement_moves_noisy_poses_toward_the_truth():
     """Synthetic room, 2 cm / 0.6 degree pose noise: a short run reduces the trajectory error
     (after the rigid alignment that removes the gauge freedom shared by field and poses)."""

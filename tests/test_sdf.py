@@ -181,6 +181,7 @@ def test_bad_sdf_settings_name_the_field(overrides, named):
         pn.ReconstructionConfig.preset("fast", **overrides)
 
 
+@pytest.mark.slow
 def test_an_sdf_reconstruction_trains_with_the_eikonal_term_and_exports_its_zero_level_set(sample):
     seq = sample.select(range(8))
     config = pn.ReconstructionConfig.preset("test", geometry="sdf", max_steps=160, holdout_every=4, progress=False)
