@@ -40,10 +40,11 @@ def machine() -> str:
 
 
 def commit() -> str:
-    """The short hash of the checkout's HEAD (with '+' when the work tree has uncommitted changes)."""
+    """The short hash of the checkout's HEAD (with '+' when the code has uncommitted changes; the
+    result files themselves do not count)."""
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO).stdout
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True,
-                           cwd=REPO).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                            ":(exclude)benchmarks/results"], capture_output=True, text=True, cwd=REPO).stdout.strip()
     return head.strip() + ("+" if dirty else "")
 
 
