@@ -1,4 +1,5 @@
-"""Atomic file writes (a crash or Ctrl-C never leaves a half-written output behind), and checked JSON reads."""
+"""Atomic file writes (a crash or Ctrl-C never leaves a half-written output behind), checked JSON reads,
+and the library's cache folder."""
 
 import json
 import os
@@ -53,3 +54,9 @@ def read_json_object(path, error: type[Exception]) -> dict:
     if not isinstance(meta, dict):
         raise error(f"{path}: expected a JSON object, got {type(meta).__name__}")
     return meta
+
+
+def cache_dir() -> Path:
+    """The library's cache folder, ``$XDG_CACHE_HOME/open3d_pnerf`` (``~/.cache/open3d_pnerf`` by default):
+    built kernels, frames extracted from recordings."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "open3d_pnerf"

@@ -23,6 +23,7 @@ from .config import ReconstructionConfig
 from .config import overrides as config_overrides
 from .data import FORMATS, load_sample, load_sequence
 from .data.devices import camera_frames
+from .data.posed_folder import POSE_CONVENTIONS
 from .distributed import BACKENDS
 from .errors import DatasetError, InputError, PNeRFError, TrainingInterrupted
 from .fields import FIELD_CONFIGS
@@ -47,7 +48,9 @@ def _frames(spec: str | None):
 
 
 def _load(args):
-    seq = load_sample() if args.data == "sample" else load_sequence(args.data, depth_trunc=args.depth_trunc)
+    given = {"depth_scale": getattr(args, "depth_scale", None), "pose_convention": getattr(args, "pose_convention", None)}
+    options = {key: value for key, value in given.items() if value is not None}
+    seq = load_sample() if args.data == "sample" else load_sequence(args.data, depth_trunc=args.depth_trunc, **options)
     frames = _frames(getattr(args, "frames", None))
     if frames is not None:
         seq = seq.select(np.arange(len(seq))[frames])
@@ -85,7 +88,7 @@ def _gt_poses(seq, args):
     return seq.gt_poses
 
 
-RUN_OPTIONS = ("data", "frames", "gt_poses", "depth_trunc")  # what run_config.json records about the input
+RUN_OPTIONS = ("data", "frames", "gt_poses", "depth_trunc", "depth_scale", "pose_convention")  # run_config.json's input
 
 
 def _inputs(args) -> dict:
@@ -112,7 +115,7 @@ def cmd_reconstruct(args) -> int:
         if args.finish:  # no step left to train: export what the checkpoint has
             config = config.replace(max_steps=1)
         for key in RUN_OPTIONS:
-            setattr(args, key, saved[key])
+            setattr(args, key, saved.get(key))
     else:
         config = _config(args)
     seq = _load(args)
@@ -201,6 +204,7 @@ def cmd_evaluate(args) -> int:
                                  "Python with frames=False?); pass --data DATA")
             args.data = saved["data"]
         args.frames, args.depth_trunc = saved.get("frames"), saved.get("depth_trunc") or 0.0
+        args.depth_scale, args.pose_convention = saved.get("depth_scale"), saved.get("pose_convention")
         try:
             seq = _load(args)
         except DatasetError as exc:
@@ -250,9 +254,12 @@ def _add_training_options(p, preset: bool = True):
 
 def _add_data_options(p, data=True, gt_poses=True):
     if data:
-        p.add_argument("data", help="dataset folder (TUM, 7-Scenes, Open3D/Redwood) or 'sample'")
+        p.add_argument("data", help="a dataset folder or recording (open3d-pnerf formats lists them) or 'sample'")
     p.add_argument("--frames", help="frames to use: 'start:stop:step' or 'i,j,k'")
     p.add_argument("--depth-trunc", type=float, default=0.0, help="drop depth beyond this (m)")
+    p.add_argument("--depth-scale", type=float, help="raw depth units per metre, where the data's own is wrong")
+    p.add_argument("--pose-convention", choices=POSE_CONVENTIONS,
+                   help="a posed folder's poses: OpenCV or OpenGL camera axes, camera-to-world (default) or inverse")
     if gt_poses:
         p.add_argument("--gt-poses", action="store_true", help="use the dataset's ground-truth poses, skip tracking")
 
@@ -268,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo, holdout_every=4)
 
     p = sub.add_parser("reconstruct", help="track, train the probabilistic NeRF, export mesh/point cloud/report")
-    p.add_argument("data", nargs="?", help="dataset folder or 'sample'")
+    p.add_argument("data", nargs="?", help="a dataset folder or recording (open3d-pnerf formats lists them) or 'sample'")
     p.add_argument("--out", default="out/reconstruction", help="output folder")
     p.add_argument("--resume", metavar="DIR", help="continue an interrupted run in DIR from its last checkpoint")
     p.add_argument("--finish", action="store_true",
@@ -294,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "--finish seconds of training on every keyframe; writes the map to --out (a saved "
                        "reconstruction that Mapper.resume and extend go on from) and map_report.json. With --camera, "
                        "frames come from a RealSense or Azure Kinect camera through Open3D until Ctrl-C.")
-    p.add_argument("data", nargs="?", help="dataset folder or 'sample' (or use --camera)")
+    p.add_argument("data", nargs="?", help="a dataset folder or recording, or 'sample' (or use --camera)")
     p.add_argument("--camera", choices=("realsense", "azure-kinect"), help="map a live camera instead of DATA")
     p.add_argument("--intrinsic", metavar="JSON", help="with --camera: the camera's Open3D PinholeCameraIntrinsic JSON "
                    "(needed for azure-kinect; a RealSense reports its own)")

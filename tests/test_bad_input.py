@@ -215,8 +215,8 @@ def nothing(tmp):
 CASES = [
     # folders and the files they list
     Case("missing-folder", lambda t: t / "no_such_scan", load, DatasetError, ("no_such_scan", "not found")),
-    Case("path-is-a-file", lambda t: (t / "scan.txt", (t / "scan.txt").write_text("x"))[0], load, DatasetError,
-         ("scan.txt", "must be a folder")),
+    Case("path-is-a-file-of-no-known-kind", lambda t: (t / "scan.txt", (t / "scan.txt").write_text("x"))[0], load,
+         DatasetError, ("scan.txt", "not a known layout", ".bag file")),
     Case("path-of-wrong-type", lambda t: 42, load, InputError, ("path", "int")),
     Case("unknown-layout", lambda t: (t / "mystery" / "images").mkdir(parents=True) or t / "mystery", load,
          DatasetError, ("mystery", "not a known layout", "rgb.txt")),

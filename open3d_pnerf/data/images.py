@@ -1,7 +1,9 @@
-"""Image decoding shared by every reader: checked image reads, depth units, frame readers."""
+"""Image decoding shared by every reader: checked image reads, depth files and units, frame readers."""
 
 from __future__ import annotations
 
+import os
+import re
 from pathlib import Path
 from typing import Callable
 
@@ -16,6 +18,7 @@ FrameReader = Callable[[], tuple[np.ndarray, np.ndarray]]
 optional ``source`` attribute (str) names where the frame comes from in error messages."""
 
 IMAGE_EXT = {".png", ".jpg", ".jpeg"}
+DEPTH_EXT = IMAGE_EXT | {".tif", ".tiff", ".exr", ".npy"}
 
 
 def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
@@ -40,9 +43,16 @@ def read_color(path: Path) -> np.ndarray:
     return cv2.cvtColor(read_image(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
-def image_files(folder: Path) -> list[Path]:
-    """The PNG and JPEG files of a folder, sorted by name."""
-    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_EXT)
+def image_files(folder: Path, suffixes=IMAGE_EXT) -> list[Path]:
+    """The files of a folder with one of `suffixes` (PNG and JPEG images by default), in natural order:
+    the numbers in their names compared as numbers (0.jpg, 1.jpg, ..., 10.jpg; zero-padded names sort
+    as they are)."""
+    return sorted((p for p in Path(folder).iterdir() if p.suffix.lower() in suffixes), key=natural_key)
+
+
+def natural_key(path: Path) -> tuple:
+    """Sort key of a file name with its digit runs as numbers: frame2 before frame10."""
+    return tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", Path(path).name))
 
 
 def depth_in_metres(raw: np.ndarray, depth_scale: float, what: str) -> np.ndarray:
@@ -59,6 +69,40 @@ def depth_in_metres(raw: np.ndarray, depth_scale: float, what: str) -> np.ndarra
         f"{what}: depth must be single-channel uint16 (raw units, divided by depth_scale) or "
         f"float32/float64 metres, got {raw.dtype} with shape {raw.shape}"
     )
+
+
+def read_depth(path: Path, unit: float) -> np.ndarray:
+    """(H, W) float32 metres of a depth file times `unit` (metres per stored unit): a 16-bit or
+    float image (PNG, TIFF; OpenEXR, as phone captures store it) or a ``.npy`` array; DatasetError
+    naming the file for anything else."""
+    path = Path(path)
+    if path.suffix == ".npy":
+        try:
+            raw = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise DatasetError(f"cannot read depth file {path} ({exc})") from None
+    else:
+        if path.suffix.lower() == ".exr":  # OpenCV decodes OpenEXR only when asked to (untrusted files' risk)
+            os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+        raw = read_image(path, cv2.IMREAD_UNCHANGED)
+    raw = np.squeeze(raw)
+    if raw.ndim == 3 and path.suffix.lower() == ".exr":  # an EXR with the depth in its first channel
+        raw = raw[..., 0]
+    if raw.ndim != 2 or not (np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)):
+        raise DatasetError(f"{path}: depth must be a single-channel image or array, got {raw.dtype} {raw.shape}")
+    return raw.astype(np.float32) * np.float32(unit)
+
+
+def resized_depth(depth: np.ndarray, size: tuple[int, int], path: Path) -> np.ndarray:
+    """Depth (h, w) brought to `size` (W, H) by the nearest pixel (a phone's depth is smaller than its
+    colour); DatasetError naming `path` unless it has that size or its aspect ratio (within a pixel)."""
+    (h, w), (iw, ih) = depth.shape, size
+    if (w, h) == (iw, ih):
+        return depth
+    if abs(h * iw / w - ih) > max(1.0, iw / w):
+        raise DatasetError(f"{path}: the depth image is {w}x{h}, neither the {iw}x{ih} colour images' size nor "
+                           "their aspect ratio")
+    return cv2.resize(depth, (iw, ih), interpolation=cv2.INTER_NEAREST)
 
 
 def file_reader(color_path: Path, depth_path: Path, depth_scale: float, invalid_raw: int | None = None) -> FrameReader:

@@ -33,9 +33,9 @@ import open3d as o3d
 from .._files import atomic_write, read_json_object
 from ..camera import check_poses, intrinsic_matrix, pinhole
 from ..errors import DatasetError, InputError, PoseError
-from .images import read_color, read_image
+from .images import read_color, read_depth, read_image, resized_depth
 from .sequence import RGBDSequence, check_sequence
-from .sfm import SfMData, SparsePoints
+from .sfm import SfMData
 
 TRANSFORMS = "transforms.json"
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes, either way
@@ -86,8 +86,7 @@ def read_nerfstudio(path: Path, intrinsic=None, depth_scale: float | None = None
                            "give every frame a depth image or none")
     undistort = _Undistortion(intrinsic_matrix(image_intrinsic), distortion, (image_intrinsic.width, image_intrinsic.height))
     if not all(with_depth):
-        sfm = SfMData(poses, np.zeros((len(poses), 6, 6)), SparsePoints.empty(len(poses)),
-                      _bounds(meta, path, file, poses, image_intrinsic))
+        sfm = SfMData.from_poses(poses, _bounds(meta, path, file, poses, image_intrinsic))
         readers = [_Frame(p, None, undistort) for p in images]
         return RGBDSequence(readers, image_intrinsic, name=path.name, image_scale=image_scale, has_depth=False,
                             sfm=sfm)
@@ -96,9 +95,9 @@ def read_nerfstudio(path: Path, intrinsic=None, depth_scale: float | None = None
         raise DatasetError(f"{file}: depth_unit_scale_factor must be > 0 (metres per depth unit), got {unit!r}")
     depths = [_existing(path / f["depth_file_path"], file, "depth_file_path") for f in frames]
     size = (image_intrinsic.width, image_intrinsic.height)
-    _check_depth_size(_read_depth(depths[0], unit).shape, size, depths[0])
+    resized_depth(read_depth(depths[0], unit), size, depths[0])  # the first frame checked now
     readers = [_Frame(c, d, undistort, unit, size) for c, d in zip(images, depths)]
-    sfm = SfMData(poses, np.zeros((len(poses), 6, 6)), SparsePoints.empty(len(poses)))
+    sfm = SfMData.from_poses(poses)
     return RGBDSequence(readers, image_intrinsic, None, None, depth_trunc, None, path.name, image_scale, sfm=sfm)
 
 
@@ -216,30 +215,6 @@ def _existing(file: Path, transforms: Path, key: str) -> Path:
     return file
 
 
-def _read_depth(file: Path, unit: float) -> np.ndarray:
-    """(H, W) float32 metres of a depth file: 16-bit (or float) image or .npy, times `unit`."""
-    if file.suffix == ".npy":
-        try:
-            raw = np.load(file, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise DatasetError(f"cannot read depth file {file} ({exc})") from None
-    else:
-        raw = read_image(file, cv2.IMREAD_UNCHANGED)
-    raw = np.squeeze(raw)
-    if raw.ndim != 2 or not (np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)):
-        raise DatasetError(f"{file}: depth must be a single-channel image or array, got {raw.dtype} {raw.shape}")
-    return raw.astype(np.float32) * np.float32(unit)
-
-
-def _check_depth_size(depth_shape: tuple[int, int], image_size: tuple[int, int], file: Path) -> None:
-    """DatasetError unless depth images of `depth_shape` (H, W) have the images' size (W, H) or its
-    aspect ratio (within a pixel)."""
-    (h, w), (iw, ih) = depth_shape, image_size
-    if abs(h * iw / w - ih) > max(1.0, iw / w):
-        raise DatasetError(f"{file}: the depth image is {w}x{h}, neither the {iw}x{ih} colour images' size nor "
-                           "their aspect ratio")
-
-
 class _Undistortion:
     """Remaps of a distorted pinhole camera (K (3, 3) of images `size` (W, H), OpenCV distortion
     (5,)) to the same camera without distortion, for images of that size or resized."""
@@ -272,10 +247,7 @@ class _Frame:
         color = self.undistort(read_color(self.color_path), cv2.INTER_LINEAR)
         if self.depth_path is None:
             return color, np.zeros(color.shape[:2], np.float32)
-        depth = _read_depth(self.depth_path, self.unit)
-        if depth.shape[::-1] != self.size:
-            _check_depth_size(depth.shape, self.size, self.depth_path)
-            depth = cv2.resize(depth, self.size, interpolation=cv2.INTER_NEAREST)
+        depth = resized_depth(read_depth(self.depth_path, self.unit), self.size, self.depth_path)
         return color, self.undistort(depth, cv2.INTER_NEAREST)
 
 

@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import check_intrinsic, check_poses, pinhole
+from ..camera import check_intrinsic, pinhole
 from ..errors import DatasetError
 from .images import file_reader
 from .sequence import RGBDSequence
+from .trajectories import read_matrix, read_pose_file
 
 
 # The colour camera of 7-Scenes' Kinect against its depth camera, registered at the plane at
@@ -42,7 +43,7 @@ def read_seven_scenes(path: Path, intrinsic=None, depth_scale: float | None = No
         if color is None:
             raise DatasetError(f"{path}: {stem}.color.png/.jpg missing for {d.name}")
         readers.append(file_reader(color, d, scale, invalid_raw=65535))  # 7-Scenes' invalid-depth mark
-        poses.append(_read_pose(path / f"{stem}.pose.txt"))
+        poses.append(read_pose_file(path / f"{stem}.pose.txt"))
     gt = np.stack(poses) if any(np.isfinite(p).all() for p in poses) else None
     if gt is not None and np.isnan(gt).any():
         missing = np.flatnonzero(np.isnan(gt).all(axis=(1, 2)))
@@ -64,25 +65,3 @@ def read_seven_scenes(path: Path, intrinsic=None, depth_scale: float | None = No
     stamps = np.array([float(re.sub(r"\D", "", d.name) or i) for i, d in enumerate(depth_files)])
     return RGBDSequence(readers, intrinsic, stamps, gt, depth_trunc, color_intrinsic, path.name, image_scale,
                         color_extrinsic=color_extrinsic)
-
-
-def _read_pose(path: Path) -> np.ndarray:
-    """The 4x4 pose of a frame's pose file; NaN for a missing file or one with inf/NaN entries
-    (7-Scenes marks frames where its tracking was lost so)."""
-    if not path.is_file():
-        return np.full((4, 4), np.nan)
-    pose = read_matrix(path, (4, 4))
-    if not np.isfinite(pose).all():
-        return np.full((4, 4), np.nan)
-    return check_poses(pose[None], 1, str(path))[0]
-
-
-def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
-    """A whitespace-separated text matrix of the given shape (DatasetError naming the file)."""
-    try:
-        m = np.loadtxt(path, dtype=np.float64)
-    except ValueError as exc:
-        raise DatasetError(f"{path}: not a {shape[0]}x{shape[1]} matrix of numbers ({exc})") from None
-    if m.shape != shape:
-        raise DatasetError(f"{path}: expected a {shape[0]}x{shape[1]} matrix, got shape {m.shape}")
-    return m

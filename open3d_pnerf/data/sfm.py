@@ -64,6 +64,14 @@ class SfMData:
     scale: float = 1.0
     radial: tuple[float, float] = (0.0, 0.0)
 
+    @classmethod
+    def from_poses(cls, poses: np.ndarray, bounds: np.ndarray | None = None) -> "SfMData":
+        """The poses a capture brings (a device's own tracking, a capture app's): (N, 4, 4)
+        camera-to-world, with zero covariances (not known: reconstruct() takes them as they are) and no
+        points; bounds: (N, 2) near/far z-depth of an image-only capture, or None."""
+        poses = np.asarray(poses, np.float64)
+        return cls(poses, np.zeros((len(poses), 6, 6)), SparsePoints.empty(len(poses)), bounds)
+
     def check(self, n: int, what: str) -> "SfMData":
         """Return self after checking its shapes against n frames (InputError naming `what`)."""
         self.poses = check_poses(self.poses, n, f"{what}: poses")

@@ -65,7 +65,7 @@ def read_tum(path: Path, intrinsic=None, depth_scale: float | None = None, depth
     poses = None
     gt = path / "groundtruth.txt"
     if gt.is_file():
-        poses = _interpolate_tum_groundtruth(gt, stamps + gt_time_offset)
+        poses = interpolate_groundtruth(gt, stamps + gt_time_offset)
     if intrinsic is None:
         known = [k for k in TUM_INTRINSICS if k in path.name]
         params = TUM_INTRINSICS[known[0]] if known else PRIMESENSE_DEFAULT
@@ -114,7 +114,7 @@ def associate(a: np.ndarray, b: np.ndarray, max_dt: float) -> list[tuple[int, in
     return sorted(pairs)
 
 
-def _interpolate_tum_groundtruth(path: Path, stamps: np.ndarray) -> np.ndarray:
+def interpolate_groundtruth(path: Path, stamps: np.ndarray) -> np.ndarray:
     """(N, 4, 4) ground-truth poses at the frames' timestamps, interpolated between the lines
     around each frame; a frame up to TUM_MAX_DT (TUM's associate.py tolerance) before the first
     line or after the last one gets that line's pose; frames farther out get NaN rows, and a

@@ -30,16 +30,14 @@ from pathlib import Path
 
 import torch
 
+from .._files import cache_dir
+
 NAME = "open3d_pnerf_hashgrid"
 SOURCE = Path(__file__).with_name("hashgrid_kernel.cpp")
 FLAGS = ("-O3", "-march=native", "-fopenmp")
 MAX_LEVELS = 32  # kMaxLevels of the kernel
 OFF = "PNERF_NATIVE=0 is set"
 STALE_LOCK_S = 600  # a build's lock file older than this was left by a killed build (a build takes ~10-60 s)
-
-
-def cache_dir() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "open3d_pnerf"
 
 
 def _cpu_id() -> str:
