@@ -1,4 +1,5 @@
-"""The `open3d-pnerf` command line: demo, reconstruct, extend, map, track, tsdf, render, evaluate, formats.
+"""The `open3d-pnerf` command line: demo, reconstruct, extend, map, track, tsdf, render, evaluate, occupancy,
+formats.
 
 Errors a user can fix are printed as one line (`open3d-pnerf: error: ...`) with exit code 2;
 Ctrl-C exits with 130 after training has written its checkpoint. `reconstruct` and `demo`
@@ -29,8 +30,8 @@ from .errors import DatasetError, InputError, PNeRFError, TrainingInterrupted
 from .fields import FIELD_CONFIGS
 from .losses import LOSSES
 from .reconstruction import Reconstruction
-from .runs import (RUN_CONFIG, evaluate_folder, extend_folder, map_stream, read_run_config, reconstruct_folder,
-                   render_files, track_folder, tsdf_folder)
+from .runs import (RUN_CONFIG, evaluate_folder, extend_folder, map_stream, occupancy_folder, read_run_config,
+                   reconstruct_folder, render_files, track_folder, tsdf_folder)
 
 EXIT_OK, EXIT_ERROR, EXIT_INTERRUPTED = 0, 2, 130
 
@@ -218,6 +219,17 @@ def cmd_evaluate(args) -> int:
     return EXIT_OK
 
 
+def cmd_occupancy(args) -> int:
+    if not args.voxel > 0:
+        raise InputError(f"--voxel {args.voxel}: a voxel size must be a positive number of metres")
+    bounds = None if args.bounds is None else np.reshape(args.bounds, (2, 3))
+    summary = occupancy_folder(Reconstruction.load(args.dir), args.out or args.dir, args.voxel, bounds)
+    print(f"{summary['shape']} voxels of {args.voxel} m: {summary['occupied']} occupied, {summary['free']} free, "
+          f"{summary['unknown']} unknown ({summary['seconds']} s); wrote occupancy.npz, .ot, .bt and esdf.npz "
+          f"into {args.out or args.dir}")
+    return EXIT_OK
+
+
 def cmd_formats(args) -> int:
     print("DATA may be a folder (or a recording file) in any of these layouts, tried in this order:\n")
     for fmt in FORMATS:
@@ -342,6 +354,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tsdf", action=argparse.BooleanOptionalAction, default=True,
                    help="also score the TSDF baseline (default: yes)")
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("occupancy", help="a saved reconstruction's occupancy grid: OctoMap .ot/.bt, .npz, distance",
+                       description="The probability that each voxel is occupied, from the training views' rendered "
+                       "depth and its calibrated law (Reconstruction.occupancy_grid): occupancy.ot (OctoMap, with the "
+                       "probabilities), occupancy.bt (OctoMap, free or occupied), occupancy.npz (OccupancyGrid.load) "
+                       "and esdf.npz (the signed distance to occupied space, with its bounds).")
+    p.add_argument("dir", help="a saved reconstruction (reconstruct, demo or map output folder)")
+    p.add_argument("--voxel", type=float, default=0.05, help="voxel size (m, default 0.05)")
+    p.add_argument("--bounds", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+                   help="min and max corner (m; default the reconstruction's scene box)")
+    p.add_argument("--out", help="output folder (default DIR)")
+    p.set_defaults(func=cmd_occupancy)
 
     p = sub.add_parser("formats", help="the input layouts DATA may have (what load_sequence detects)")
     p.set_defaults(func=cmd_formats)

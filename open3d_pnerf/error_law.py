@@ -162,6 +162,15 @@ class DepthErrorLaw:
         """Negative log-likelihood (nats) of errors `err` (m) with 1-sigma equivalents `sigma` (m)."""
         return depth_nll(err, sigma, self.dof)
 
+    def cdf(self, err: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """P(error <= err) under the law, for errors `err` (m) with 1-sigma equivalents `sigma` (m):
+        the probability that the true depth lies less than `err` beyond the rendered one."""
+        from scipy import special
+
+        _, one = _standard_law(self.dof)
+        x = np.asarray(err) * one / np.asarray(sigma)
+        return special.ndtr(x) if np.isinf(self.dof) else special.stdtr(self.dof, x)
+
     @classmethod
     def fit(cls, err: np.ndarray, spread: np.ndarray, z: np.ndarray, method: str = "likelihood",
             coverage: float = 0.683, unseen_distance: np.ndarray | None = None) -> "DepthErrorLaw":

@@ -32,6 +32,7 @@ from .export import export_geometry
 from .fields import EncodedField
 from .model import build_model
 from .observed import ObservedSurface
+from .occupancy import OccupancyGrid
 from .reconstruction import Reconstruction
 from .scene import BOX_MARGIN, scene_box
 from .stages import checked_config
@@ -79,6 +80,7 @@ class Mapper:
         self._since_keyframe = 0
         self._resumed: tuple[int, np.ndarray] | None = None  # (kept frames, their covariances) of a resumed map
         self._anchor: int | None = None  # the resumed map's frame the stream was placed from
+        self._occupancy: tuple[tuple, OccupancyGrid] | None = None  # (what it was built from, the grid)
 
     # -- the stream -------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -327,6 +329,16 @@ class Mapper:
             recon.calibrate_depth_sigma(sequence)
             recon.geometry = export_geometry(recon, sequence, progress=False)
         return recon
+
+    def occupancy_grid(self, voxel_size: float = 0.05, bounds=None) -> OccupancyGrid:
+        """The map's occupancy grid now (:meth:`Reconstruction.occupancy_grid` of :meth:`reconstruction`,
+        its depth sigma calibrated on the keyframes): built again only after frames or training."""
+        key = (len(self), self.steps, voxel_size, None if bounds is None else np.asarray(bounds, float).tobytes())
+        if self._occupancy is None or self._occupancy[0] != key:
+            recon = self.reconstruction(export=False)
+            recon.calibrate_depth_sigma(recon.frames)
+            self._occupancy = (key, recon.occupancy_grid(voxel_size, bounds))
+        return self._occupancy[1]
 
     def heldout_psnr(self) -> float | None:
         """The map's held-out PSNR now (dB, over the held-out frames kept so far; None without any)."""

@@ -16,7 +16,7 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from . import storage
+from . import occupancy, storage
 from .camera import camera_pose, check_intrinsic, intrinsic_matrix, pose_to_extrinsic, unproject
 from .config import ReconstructionConfig
 from .data.nerfstudio import write_nerfstudio
@@ -28,6 +28,7 @@ from .export import Geometry
 from .extension import extend
 from .model import PNeRFModel
 from .observed import ObservedSurface
+from .occupancy import SensorModel
 from .rendering import Rays
 
 
@@ -246,6 +247,21 @@ class Reconstruction:
                           "inside: is it an Open3D world-to-camera extrinsic? Poses are camera-to-world; pass "
                           "o3d.camera.PinholeCameraParameters to render it as Open3D means it", stacklevel=3)
         return pose, intrinsic
+
+    # -- occupancy for a planner (open3d_pnerf.occupancy) --------------------------------------
+    def occupancy(self, points, size: float = 0.05, sensor: SensorModel = SensorModel(),
+                  pixel_stride: int = 8) -> np.ndarray:
+        """(N,) probability that a cube of side `size` (m) at each world point (N, 3) m is occupied,
+        from what the training views' rendered depth and its calibrated law say of it (every
+        `pixel_stride` training pixels); 0.5 where no training view's ray reached. The derivation
+        and the `sensor` model: :mod:`open3d_pnerf.occupancy.evidence`."""
+        return occupancy.occupancy_at(self, points, size, sensor, pixel_stride)
+
+    def occupancy_grid(self, voxel_size: float = 0.05, bounds=None, sensor: SensorModel = SensorModel(),
+                       pixel_stride: int = 8) -> occupancy.OccupancyGrid:
+        """The :class:`~open3d_pnerf.occupancy.OccupancyGrid` of :meth:`occupancy` at the centres of
+        voxels of `voxel_size` (m) over `bounds` ((2, 3) min and max corner, m; None: the scene box)."""
+        return occupancy.occupancy_grid(self, voxel_size, bounds, sensor, pixel_stride)
 
     # -- the depth-error law (open3d_pnerf.error_law) ----------------------------------------
     @property

@@ -1,6 +1,6 @@
 """Run folders, what the command line writes: a reconstruction's (its config, checkpoints with the
 tracked poses, the saved reconstruction, its comparison with TSDF fusion and report.md), an
-extension's, a streamed map's, a trajectory's, a TSDF's, renders and evaluations. The command line
+extension's, a streamed map's, a trajectory's, a TSDF's, an occupancy grid's, renders and evaluations. The command line
 (:mod:`open3d_pnerf.cli`) parses its options and calls these.
 """
 
@@ -25,6 +25,7 @@ from .evaluation import heldout_scores
 from .export import write_mesh_ply, write_point_cloud_ply
 from .extension import extension_config
 from .mapper import Mapper
+from .occupancy import FREE_BELOW, OCCUPIED_ABOVE
 from .pipeline import run
 from .reconstruction import Reconstruction
 from .stages import checked_config, resolve_poses
@@ -224,3 +225,19 @@ def evaluate_folder(folder, recon: Reconstruction, sequence: RGBDSequence, out=N
     out = Path(out) if out else folder / "evaluation.json"
     atomic_write(out, lambda p: Path(p).write_text(json.dumps(result, indent=1, default=float)))
     return result
+
+
+def occupancy_folder(recon: Reconstruction, out, voxel_size: float = 0.05, bounds=None) -> dict:
+    """Write the reconstruction's occupancy grid of `voxel_size` (m) over `bounds` (None: its scene
+    box) into `out`: occupancy.npz (OccupancyGrid.load), occupancy.ot and occupancy.bt (OctoMap) and
+    esdf.npz (the distance field), all or none; returns its voxel counts and seconds."""
+    t0 = time.perf_counter()
+    grid = recon.occupancy_grid(voxel_size, bounds)
+    seconds = time.perf_counter() - t0
+    esdf = grid.esdf()
+    out = Path(out)
+    atomic_write_all({out / "occupancy.npz": grid.save, out / "occupancy.ot": grid.write_octomap,
+                      out / "occupancy.bt": grid.write_octomap, out / "esdf.npz": esdf.save})
+    p = grid.probabilities()
+    return {"voxel_size": voxel_size, "shape": list(grid.shape), "occupied": int((p > OCCUPIED_ABOVE).sum()),
+            "free": int((p < FREE_BELOW).sum()), "unknown": int(grid.unknown().sum()), "seconds": round(seconds, 2)}

@@ -45,6 +45,21 @@ def test_every_frame_is_tracked_as_it_comes_with_a_growing_covariance(sample, ma
 
 
 @pytest.mark.slow
+def test_the_maps_occupancy_grid_follows_the_frames_and_is_kept_until_they_change(sample):
+    mapper = Mapper(sample.intrinsic, config())
+    for i in range(6):
+        mapper.add(sample.to_open3d(i), sample.timestamps[i])
+    grid = mapper.occupancy_grid(0.1)
+    assert mapper.occupancy_grid(0.1) is grid  # nothing new: the same grid, not built again
+    seen = (~grid.unknown()).sum()
+    mapper.add(sample.to_open3d(6), sample.timestamps[6])  # a keyframe: one more view, more training
+    again = mapper.occupancy_grid(0.1)
+    assert again is not grid and not np.array_equal(again.log_odds, grid.log_odds)
+    assert (~again.unknown()).sum() > 0.5 * seen
+    assert mapper.occupancy_grid(0.2) is not again
+
+
+@pytest.mark.slow
 def test_the_map_is_a_reconstruction_at_any_moment(sample, mapped):
     mapper, _ = mapped
     recon = mapper.reconstruction(export=False)
