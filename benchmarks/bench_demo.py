@@ -6,7 +6,7 @@ with --steps, training stops after a fixed number of steps, and the demo is bit-
 Runs the command line, ``open3d-pnerf demo --out <temporary folder>`` (the bundled TUM
 sample: tracked poses, the `fast` preset, every 4th frame held out), `--runs` times in a row, and
 reads its report.json: the model's held-out PSNR and SSIM, depth on the pixels every method
-covers, the exported mesh's coverage, the same for the sensor alone and the TSDF, tracking ATE and
+covers, the exported mesh's coverage and colour, the same for the sensor alone and the TSDF, tracking ATE and
 training time; and, from the saved reconstruction, each held-out frame's PSNR, the share of its
 pixels that lie inside some training view's image (at the sensor's depth, else the model's; the
 rest no training frame saw; occlusion is not counted) and the PSNR on the rest, and the held-out
@@ -41,6 +41,8 @@ KEYS = {  # report key: (method, metric)
     "common_share": ("model", "common_share"), "mesh_coverage": ("mesh", "coverage"),
     "tsdf_coverage": ("tsdf", "coverage"), "mesh_depth_l1_hits_m": ("mesh", "depth_l1_hits"),
     "tsdf_depth_l1_hits_m": ("tsdf", "depth_l1_hits"), "tsdf_psnr_hits": ("tsdf", "psnr_hits"),
+    "mesh_psnr_common": ("mesh", "psnr_common"), "tsdf_psnr_common": ("tsdf", "psnr_common"),
+    "mesh_ssim": ("mesh", "ssim"), "tsdf_ssim": ("tsdf", "ssim"),
     "model_only_share": ("model", "only_share"), "within_3_only": ("model", "within_3_only"),
 }
 
@@ -130,6 +132,8 @@ def markdown(result: dict) -> str:
             ("depth L1 on its hits: mesh / TSDF (mm)", ("mesh_depth_l1_hits_m", "tsdf_depth_l1_hits_m"), 1000, ".1f"),
             ("coverage: mesh / TSDF", ("mesh_coverage", "tsdf_coverage"), 1, ".3f"),
             ("TSDF PSNR on its hits (dB)", "tsdf_psnr_hits", 1, ".2f"),
+            ("colour PSNR on common pixels: mesh / TSDF (dB)", ("mesh_psnr_common", "tsdf_psnr_common"), 1, ".2f"),
+            ("colour SSIM, whole frame: mesh / TSDF", ("mesh_ssim", "tsdf_ssim"), 1, ".3f"),
             ("pixels only the model covers (share)", "model_only_share", 1, ".3f"),
             ("errors within the 99.7% interval there", "within_3_only", 1, ".3f"),
             ("tracking ATE RMSE (mm)", "ate_rmse_m", 1000, ".1f"), ("training (s)", "train_s", 1, ".0f"),

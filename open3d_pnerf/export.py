@@ -4,10 +4,11 @@ depth sigma, meshes with per-vertex depth sigma, PLY files; and the export's set
 Both come from renders at the training views (fused with the sensor's depth where there is
 one: :func:`open3d_pnerf.fusion.fuse_render_with_sensor`): points are back-projected depth
 kept where opacity is high and depth_std small; the mesh is Open3D TSDF fusion of the
-same depth and colour, so no floater outside the observed frustums survives (with
-geometry="sdf", the field's zero level set near those points instead); each vertex takes the
-sigma of the nearest of those points, widened by its distance to it. :func:`sensor_geometry` is
-the same export without the model, the comparison's sensor-alone baseline.
+same depth and colour (the training images' colour where fused with the sensor), so no floater
+outside the observed frustums survives (with geometry="sdf", the field's zero level set near
+those points instead); each vertex takes the sigma of the nearest of those points, widened by its
+distance to it. :func:`sensor_geometry` is the same export without the model, the comparison's
+sensor-alone baseline.
 """
 
 from __future__ import annotations
@@ -216,7 +217,8 @@ class ExportViews:
     """The per-view depth an export builds its geometry from: renders (dicts with color (H, W, 3),
     depth and depth_std (H, W) z metres, opacity (H, W)) at camera-to-world `poses` (V, 4, 4) with
     intrinsic matrix K (3, 3); `fused`: each render's depth fused with the sensor's (at the training
-    resolution), else the model's alone (at ExportConfig.scale)."""
+    resolution) and its colour the training image's (at the average exposure), else the model's alone
+    (at ExportConfig.scale)."""
 
     poses: np.ndarray
     K: np.ndarray
@@ -236,11 +238,14 @@ def export_views(recon, sequence: RGBDSequence | None = None, config: ExportConf
     with the sensor's random sigma (:class:`~open3d_pnerf.targets.SensorNoise`); its systematic
     part (targets.depth_sigma_relative) is common to both, the model having learned from this
     sensor, so it is added to the fused variance afterwards: observed surfaces keep the sensor's
-    accuracy, the others come from the model, each with its fused sigma. config: the export
+    accuracy, the others come from the model, each with its fused sigma. The colour of a fused
+    view is its training image's (registered to the depth, divided by the frame's colour gains to
+    the average exposure the model renders), as TSDF fusion colours its mesh. config: the export
     settings (default: the reconstruction's).
     """
     cfg = config or recon.config.export
-    poses, views = _export_views(recon, sequence, cfg)
+    frames, views = _export_views(recon, sequence, cfg)
+    poses = recon.poses[frames]
     intr = scale_intrinsic(recon.intrinsic, cfg.scale) if views is None else \
         scale_intrinsic(views.intrinsic, cfg.fused_scale)
     renders = [recon.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
@@ -256,6 +261,9 @@ def export_views(recon, sequence: RGBDSequence | None = None, config: ExportConf
                                         recon.depth_sigma_dof)
         common = np.where(z > 0, noise.systematic_var(fused["depth"]), 0)
         fused["depth_std"] = np.sqrt(fused["depth_std"] ** 2 + common).astype(np.float32)
+        # the colour the camera saw, at the average exposure (as the model renders it): sharper than a render
+        image = views.color_on_depth_grid(views[k].color, views[k].depth) / 255.0
+        fused["color"] = np.clip(image / recon.color_gains[frames[k]], 0, 1).astype(np.float32)
         renders[k] = fused
     return ExportViews(poses, views.K, renders, fused=True)
 
@@ -283,7 +291,8 @@ def sensor_geometry(recon, sequence: RGBDSequence, config: ExportConfig | None =
     model: what the sensor alone gives). sequence: the input sequence, with depth images."""
     cfg = config or recon.config.export
     check_sequence(sequence, len(recon.poses), "sensor_geometry(): sequence", needs_depth=True)
-    poses, views = _export_views(recon, sequence, cfg)
+    frames, views = _export_views(recon, sequence, cfg)
+    poses = recon.poses[frames]
     noise, renders = recon.config.targets.sensor_noise(), []
     for k, pose in enumerate(poses):
         frame = views[k]
@@ -296,7 +305,7 @@ def sensor_geometry(recon, sequence: RGBDSequence, config: ExportConfig | None =
 
 
 def _export_views(recon, sequence: RGBDSequence | None, cfg: ExportConfig):
-    """(poses (V, 4, 4), the sequence's frames at those views at the training resolution, or None
+    """(frame indices (V,), the sequence's frames at those views at the training resolution, or None
     without sensor depth) of the export views: at most cfg.max_views training frames, evenly spaced."""
     frames = recon.train_indices[evenly_spaced(len(recon.train_indices), cfg.max_views)]
     views = None
@@ -304,7 +313,7 @@ def _export_views(recon, sequence: RGBDSequence | None, cfg: ExportConfig):
         check_sequence(sequence, len(recon.poses), "export_geometry(): sequence")
         if sequence.has_depth:
             views = sequence.select(frames).scaled_by(recon.config.image_scale)
-    return recon.poses[frames], views
+    return frames, views
 
 
 def _geometry(renders: list[dict], poses: np.ndarray, K: np.ndarray, cfg: ExportConfig, max_std: float,

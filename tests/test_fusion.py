@@ -121,3 +121,18 @@ def test_a_half_size_render_fills_the_sensor_holes_at_the_sensor_resolution():
     np.testing.assert_allclose(out["depth_std"][1, 1], 0.01 / np.sqrt(2), rtol=1e-5)  # both agree: fused
     with pytest.raises(InputError, match="must not be larger"):
         fuse_render_with_sensor(render, sensor[:, :1], np.full((2, 1), 0.01), 0.5, 1.0)
+
+
+def test_the_fused_export_colours_its_mesh_from_the_training_images_at_the_average_exposure(plane_scene):
+    """An untrained model renders no colour worth keeping; the mesh fused with the sensor takes the
+    training images' colour, divided by each frame's gains (the model renders the average exposure)."""
+    from conftest import tiny_reconstruction
+
+    from open3d_pnerf.export import export_geometry
+
+    seq, _ = plane_scene(color=(200, 100, 50))
+    recon = tiny_reconstruction()  # frames 1 and 2 trained
+    recon.color_gains = np.array([[1.0, 1.0, 1.0], [2.0, 2.0, 2.0], [2.0, 2.0, 2.0]])  # they saw it twice as bright
+    colors = np.asarray(export_geometry(recon, seq, progress=False).mesh.vertex_colors)
+    assert len(colors) > 100
+    np.testing.assert_allclose(np.median(colors, 0), np.array([200, 100, 50]) / 255 / 2, atol=2 / 255)
