@@ -7,12 +7,14 @@ time: each run also scores a fixed set of 2,048 held-out pixels every 250 steps;
 "equal-time" column is that PSNR at the largest time every run of the dataset and seed
 reached (linear between evaluations).
 
-Datasets (see bench_suite.py): fern (LLFF, 10 training views, every 8th image held out, COLMAP
+Datasets (common.py): fern (LLFF, 10 training views, every 8th image held out, COLMAP
 poses and points, 504x378), synthetic (the room, 10 views at ground-truth poses, every 4th
 frame held out, 320x240), tum (TUM fr1/xyz, 10 views at ground-truth poses, every 4th held
-out, 320x240). Each run is a fresh process, `--jobs` at once with one torch thread each.
+out, 320x240), 7scenes (redkitchen 150-199, the same). Each run is a fresh process, `--jobs` at
+once with `--threads` torch threads each.
 
     python benchmarks/bench_losses.py --datasets fern --steps 14000 --name losses_fern
+    python benchmarks/bench_losses.py --datasets fern,tum --seconds 300 --jobs 1 --threads 2 --name losses_300s
     python benchmarks/bench_losses.py --datasets synthetic,tum --steps 3000 --name losses_rgbd
     python benchmarks/bench_losses.py --datasets synthetic --variants pnerf,pnerf_fine_terms --seeds 0,1 \
         --steps 1500 --name tuning_coarse_terms      # a settings choice, on the tuning scene
@@ -52,6 +54,9 @@ VARIANTS = {  # name -> config overrides
     "pnerf_proposal": {"loss": "pnerf", "sampling.n_proposal": 64, "sampling.n_coarse": 16},
     "pnerf_proposal128": {"loss": "pnerf", "sampling.n_proposal": 128, "sampling.n_coarse": 16},
     "pnerf_grid": {"loss": "pnerf", "field": "grid"},  # the dense-grid field in place of the hash grid
+    # at a user's budget on sparse views: depth terms that leave colour more of the gradient
+    "pnerf_light_depth": {"loss": "pnerf", "objective.weights.depth_pdf": 0.1, "objective.weights.depth": 0.1},
+    "pnerf_fast_decay": {"loss": "pnerf", "objective.depth_weight_final_factor": 0.001},
 }
 PRESET = {"fern": "forward_facing"}  # each dataset's preset (the others: "fast")
 PAPER = {"fern": {"pnerf": (25.53, 0.80), "dsnerf": (24.27, 0.74)}}  # the PNeRF paper's Table (PSNR dB, SSIM)
@@ -68,8 +73,10 @@ def run_one(spec: dict) -> dict:
     seq, _ = load(spec["source"])
     poses, covs = poses_for(spec["source"], seq)
     d = spec["dataset"]
+    budget = dict(max_steps=10**9, time_budget_s=spec["seconds"]) if spec["seconds"] else \
+        dict(max_steps=spec["steps"], time_budget_s=None)
     cfg = pn.ReconstructionConfig.preset(
-        PRESET.get(d, "fast"), max_steps=spec["steps"], time_budget_s=None, holdout_every=HOLDOUT_EVERY.get(d, 4),
+        PRESET.get(d, "fast"), **budget, holdout_every=HOLDOUT_EVERY.get(d, 4),
         image_scale=IMAGE_SCALE.get(d, 0.5), train_views=spec["views"], seed=spec["seed"], progress=False,
         **VARIANTS[spec["variant"]])
     t0 = time.perf_counter()
@@ -125,11 +132,14 @@ def summary(results: list[dict], variants: list[str]) -> dict:
 def markdown(results: list[dict], meta: dict, variants: list[str]) -> str:
     split = ("Scored on the held-out frames." if meta.get("split", "report") == "report" else
              "Tuning split: scored on the training pool's frames the sparse views left out, not the held-out ones.")
-    lines = [f"{meta['steps']} steps per run (equal steps), seeds {meta['seeds']}, {meta['threads']} thread(s), "
+    budget = (f"{meta['seconds']:g} s of training per run (equal time)" if meta.get("seconds") else
+              f"{meta['steps']} steps per run (equal steps)")
+    lines = [f"{budget}, seeds {meta['seeds']}, {meta['threads']} thread(s), "
              f"{meta['jobs']} run(s) at once; {meta['wall_minutes']} min in all; {meta['machine']}. {split}",
              "PSNR/SSIM/depth: full held-out images at the end. Equal time: PSNR of 2,048 fixed held-out pixels "
              "at the time every run of the same dataset and seed had reached.", ""]
-    head = "| dataset | loss | seed | PSNR (dB) | SSIM | depth L1 (mm) | within 1σ | equal-time PSNR (s) | train s |"
+    head = ("| dataset | loss | seed | PSNR (dB) | SSIM | depth L1 (mm) | within 1σ | equal-time PSNR (s) | train s "
+            "| steps |")
     lines += [head, "|" + " --- |" * (head.count("|") - 1)]
     for r in sorted(results, key=lambda r: (r["dataset"], variants.index(r["variant"]), r["seed"])):
         m = r["model"]
@@ -137,7 +147,7 @@ def markdown(results: list[dict], meta: dict, variants: list[str]) -> str:
         within = f"{m['within_1']:.2f}" if "within_1" in m else "-"
         lines.append(f"| {r['dataset']} | {r['variant']} | {r['seed']} | {m['psnr']:.2f} | {m['ssim']:.3f} | {depth} | "
                      f"{within} | {r['equal_time']['psnr_subset']:.2f} ({r['equal_time']['seconds']:.0f}) | "
-                     f"{r['train_s']:.0f} |")
+                     f"{r['train_s']:.0f} | {r['steps']} |")
     lines += ["", "Means over seeds, and the paired PSNR difference of the first loss minus each other, seed by seed:",
               "", "| dataset | loss | PSNR (dB) | SSIM | depth L1 (mm) | equal-time PSNR | "
               f"{variants[0]} minus this, per seed (dB) | paper PSNR / SSIM |", "|" + " --- |" * 8]
@@ -158,6 +168,8 @@ def main():
     ap.add_argument("--variants", default="pnerf,dsnerf,photometric", help=f"comma-separated, of {list(VARIANTS)}")
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--steps", type=int, default=14000, help="training steps of every run")
+    ap.add_argument("--seconds", type=float, help="instead of --steps: every run trains this long (equal time; "
+                    "use --jobs 1 --threads 2, as a user runs it)")
     ap.add_argument("--views", type=int, default=10, help="training views (0 = every non-held-out frame)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
     ap.add_argument("--jobs", type=int, default=min(2, multiprocessing.cpu_count()), help="runs at once")
@@ -177,14 +189,14 @@ def main():
     if args.split == "tuning" and args.views == 0:
         raise SystemExit("--split tuning scores the frames --views leaves out: give --views")
     specs = [dict(dataset=d, source=sources[d], variant=v, seed=s, views=args.views, steps=args.steps,
-                  threads=args.threads, split=args.split)
+                  seconds=args.seconds, threads=args.threads, split=args.split)
              for d in datasets for s in seeds for v in variants]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
         f"{r['dataset']:10s} {r['variant']:22s} seed {r['seed']} PSNR {r['model']['psnr']:.2f} "
         f"SSIM {r['model']['ssim']:.3f} {r['train_s']:.0f} s"))
     add_equal_time(results)
     meta = {"machine": machine(), "commit": commit(),
-            "steps": args.steps, "seeds": seeds, "views": args.views, "split": args.split, "threads": args.threads,
+            "steps": None if args.seconds else args.steps, "seconds": args.seconds, "seeds": seeds, "views": args.views, "split": args.split, "threads": args.threads,
             "jobs": args.jobs,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
             "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets},
