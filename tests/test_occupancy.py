@@ -10,7 +10,14 @@ from open3d_pnerf.error_law import DepthErrorLaw
 from open3d_pnerf.errors import ConfigError, InputError
 from open3d_pnerf.occupancy import OccupancyGrid, SensorModel, ViewEvidence, grid_frame, signed_distance
 
-SENSOR = SensorModel(hit=1.5, miss=-0.5, low=-4.0, high=4.0)
+SENSOR = SensorModel(hit=1.5, miss=-0.5, grazing=0.0, low=-4.0, high=4.0)  # OctoMap's model: no grazing discount
+
+
+def test_the_sensor_model_discounts_the_passes_of_a_voxel_views_end_in_and_clamps():
+    sensor = SensorModel(hit=0.5, miss=-1.0, grazing=10.0, low=-2.0, high=2.0)
+    hits, passes = np.array([0.0, 1.0, 0.2, 10.0, 0.0, 0.01]), np.array([2.0, 2.0, 0.0, 0.0, 5.0, 0.01])
+    np.testing.assert_allclose(sensor.log_odds(hits, passes), [-2.0, 0.5 - 2.0 / 11, 0.1, 2.0, -2.0, 0.0],
+                               rtol=1e-6)  # free, grazed, hit, clamped high and low, unseen (below MIN_EVIDENCE)
 
 
 def look_at(eye, target) -> np.ndarray:
