@@ -155,7 +155,7 @@ def tune(keep_octomap: bool = False) -> dict:
     models = [SensorModel(hit, miss, grazing, low, high) for hit, miss, grazing, (low, high) in values]
     for name, views in (("grid", view_evidence(recon)), ("sensor", sensor_views(seq, recon))):
         hits, passes = views.at(centers, VOXEL)
-        trials = [(dataclasses.asdict(m), scores(1 / (1 + np.exp(-m.log_odds(hits, passes).astype(float))), occupied))
+        trials = [(dataclasses.asdict(m), scores(m.probability(hits, passes), occupied))
                   for m in models]
         out[name] = {"chosen": chosen(trials), "trials": trials}
     if keep_octomap and TUNING.is_file():  # OctoMap's search, as the last --tune ran it on the same frames
@@ -183,7 +183,7 @@ def run_one(dataset: str, seed: int, tuning: dict) -> dict:
     grid_s = time.perf_counter() - t0
     centers, occupied = reference(dataset, seq, recon)
     hits, passes = sensor_views(seq, recon).at(centers, VOXEL)
-    sensor = 1 / (1 + np.exp(-SensorModel(**tuning["sensor"]["chosen"]).log_odds(hits, passes).astype(float)))
+    sensor = SensorModel(**tuning["sensor"]["chosen"]).probability(hits, passes)
     octo, octomap_s = octomap_probabilities(seq, recon, tuning["octomap"]["chosen"], centers)
     octo_default, _ = octomap_probabilities(seq, recon, OCTOMAP_DEFAULT, centers)
     return {"dataset": dataset, "seed": seed, "train_s": recon.stats["training"]["seconds"],

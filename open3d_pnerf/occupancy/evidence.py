@@ -33,6 +33,7 @@ import functools
 import weakref
 
 import numpy as np
+from scipy.special import expit
 
 from ..error_law import DepthErrorLaw
 from ..errors import ConfigError, InputError
@@ -67,6 +68,10 @@ class SensorModel:
         """(N,) float32 log-odds of voxels with hits and passes (N,) summed over the views; 0 where unseen."""
         value = np.clip(self.hit * hits + self.miss * passes / (1 + self.grazing * hits), self.low, self.high)
         return np.where(hits + passes >= MIN_EVIDENCE, value, 0.0).astype(np.float32)
+
+    def probability(self, hits: np.ndarray, passes: np.ndarray) -> np.ndarray:
+        """(N,) probability that each voxel is occupied: the logistic of :meth:`log_odds`."""
+        return expit(self.log_odds(hits, passes).astype(np.float64))
 
 
 @dataclasses.dataclass(eq=False)
@@ -252,7 +257,7 @@ def occupancy_at(recon, points, size: float = 0.05, sensor: SensorModel = Sensor
     if isinstance(size, bool) or not isinstance(size, (int, float, np.floating, np.integer)) or not size > 0:
         raise ConfigError(f"size must be a positive number of metres, got {size!r}")
     hits, passes = view_evidence(recon, pixel_stride).at(points, size)
-    return 1 / (1 + np.exp(-sensor.log_odds(hits, passes).astype(np.float64)))
+    return sensor.probability(hits, passes)
 
 
 def occupancy_grid(recon, voxel_size: float = 0.05, bounds=None, sensor: SensorModel = SensorModel(),

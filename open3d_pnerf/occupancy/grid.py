@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from scipy.special import expit
 
 from ..errors import ConfigError, InputError
 from .distance import DistanceField, collision_probability, distance_field
@@ -52,13 +53,13 @@ class OccupancyGrid:
 
     def probabilities(self) -> np.ndarray:
         """(X, Y, Z) probability that each voxel is occupied."""
-        return 1 / (1 + np.exp(-self.log_odds.astype(np.float64)))
+        return expit(self.log_odds.astype(np.float64))
 
     def probability(self, points) -> np.ndarray:
         """(N,) probability that the voxel of each point (N, 3) m is occupied; 0.5 outside the grid."""
         index, inside = self._index(points)
         out = np.full(len(index), 0.5)
-        out[inside] = 1 / (1 + np.exp(-self.log_odds[tuple(index[inside].T)].astype(np.float64)))
+        out[inside] = expit(self.log_odds[tuple(index[inside].T)].astype(np.float64))
         return out
 
     def free(self, points, threshold: float = FREE_BELOW) -> np.ndarray:
@@ -120,8 +121,8 @@ class OccupancyGrid:
             raise InputError(f"{path}: an OctoMap file is .ot (probabilities) or .bt (free or occupied)")
         tree = octomap.OcTree(self.voxel_size)
         lo, hi = float(self.log_odds.min(initial=0)), float(self.log_odds.max(initial=0))
-        tree.setClampingThresMin(min(1 / (1 + np.exp(-lo)), 0.5) * 0.999)  # keep every value as it is
-        tree.setClampingThresMax(1 - (1 - max(1 / (1 + np.exp(-hi)), 0.5)) * 0.999)
+        tree.setClampingThresMin(min(expit(lo), 0.5) * 0.999)  # keep every value as it is
+        tree.setClampingThresMax(1 - (1 - max(expit(hi), 0.5)) * 0.999)
         known = ~self.unknown()
         for center, value in zip(self.centers()[known], self.log_odds[known]):
             tree.updateNode(center, float(value), lazy_eval=True)
