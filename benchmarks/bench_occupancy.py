@@ -75,9 +75,10 @@ def training_frames(seq, recon, stride: int = 1):
 
 
 def sensor_views(seq, recon, stride: int = 4):
-    """The ablation without the model: the same evidence (open3d_pnerf.occupancy.ViewEvidence, the same
-    pixels as the model's renders: every 4th, walked at every pixel near the surface) from the training
-    frames' sensor depth, its sigma the sensor noise model's (a Gaussian); a pixel without depth says
+    """The ablation without the model: the same evidence (open3d_pnerf.occupancy.ViewEvidence) from the
+    training frames' sensor depth at every `stride`-th pixel (the grid's fused views have every training
+    pixel; both walk rays in the same directions near the surface, the ablation's at its coarser
+    pixel's depth), its sigma the sensor noise model's (a Gaussian); a pixel without depth says
     nothing, as in the grid."""
     from open3d_pnerf.error_law import DepthErrorLaw
     from open3d_pnerf.occupancy import ViewEvidence
