@@ -151,7 +151,8 @@ def compare(recon: Reconstruction, sequence: RGBDSequence, reference=None, figur
         threshold = export.mesh_min_views - 0.5 if weight_threshold is None else weight_threshold
         train = sequence.select(recon.train_indices).scaled_by(recon.config.image_scale)
         depth_max = float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))  # nothing in the box is farther
-        volume = tsdf_fusion(train, recon.poses[recon.train_indices], voxel_size=voxel_size, sdf_trunc=4 * voxel_size,
+        volume = tsdf_fusion(train, recon.poses[recon.train_indices], voxel_size=voxel_size,
+                             sdf_trunc=export.mesh_trunc_voxels * voxel_size,
                              depth_max=depth_max, return_volume=True, progress=progress, weight_threshold=threshold)
         surfaces.update({"sensor": sensor_geometry(recon, sequence).mesh, "tsdf": volume.mesh(),
                          "tsdf_default": volume.mesh(OPEN3D_WEIGHT_THRESHOLD)})

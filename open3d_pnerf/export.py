@@ -50,6 +50,10 @@ class ExportConfig(Settings):
     """Render at most this many training views (evenly spaced): bounds export time and memory."""
     mesh_voxel_size: float = setting(0.01, number(0, low_open=True, unit="metres"))
     """Voxel size (m) of the TSDF that fuses rendered depth into the exported mesh."""
+    mesh_trunc_voxels: float = setting(4.0, number(1, low_open=True))
+    """Truncation of that TSDF, in voxels (compare_with_tsdf's TSDF baseline uses the same): more
+    closes the slivers a mesh leaves at depth edges and where views' coverage ends, at some cost in
+    accuracy where surfaces are thin or poses are off (docs/benchmarks.md measures 4 against 8)."""
     mesh_min_views: int = setting(1, count(1))
     """Keep mesh surfaces seen in at least this many export views: 1 keeps all (the most
     complete mesh); 2 drops surfaces seen once, where the sensor's noise is not averaged (more
@@ -86,13 +90,14 @@ def point_cloud_from_renders(renders: list[dict], poses, K, min_opacity=0.9, max
 
 
 def mesh_from_renders(renders: list[dict], poses, K, voxel_size=0.01, min_opacity=0.9, max_std=0.05, depth_max=5.0,
-                      min_views: int = 1):
-    """Coloured mesh: TSDF fusion (Open3D) of rendered depth/colour where confident.
+                      min_views: int = 1, trunc_voxels: float = 4.0):
+    """Coloured mesh: TSDF fusion (Open3D) of rendered depth/colour where confident, truncated at
+    trunc_voxels voxels of voxel_size (m).
 
     Rendered depth is already filtered by opacity and depth_std, so by default (min_views 1)
     one view suffices per voxel; min_views 2 keeps only surfaces that at least two renders see.
     """
-    volume = TSDFVolume(voxel_size, 4 * voxel_size, depth_max, weight_threshold=min_views - 0.5)
+    volume = TSDFVolume(voxel_size, trunc_voxels * voxel_size, depth_max, weight_threshold=min_views - 0.5)
     for r, pose in zip(renders, poses):
         depth = np.where((r["opacity"] >= min_opacity) & (r["depth_std"] <= max_std), r["depth"], 0).astype(np.float32)
         color = (np.clip(r["color"], 0, 1) * 255).astype(np.uint8)
@@ -327,7 +332,7 @@ def _geometry(renders: list[dict], poses: np.ndarray, K: np.ndarray, cfg: Export
     points = np.asarray(cloud.points)
     if level_set is None:
         mesh = mesh_from_renders(renders, poses, K, cfg.mesh_voxel_size, cfg.min_opacity, max_std,
-                                 min_views=cfg.mesh_min_views)
+                                 min_views=cfg.mesh_min_views, trunc_voxels=cfg.mesh_trunc_voxels)
         return Geometry(mesh, vertex_sigma(mesh, points, point_sigma), cloud, point_sigma)
     mesh = sdf_surface(level_set, cloud, cfg.mesh_voxel_size)
     sigma = vertex_sigma(mesh, points, point_sigma)

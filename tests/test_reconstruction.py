@@ -279,6 +279,27 @@ def test_mesh_from_renders_with_min_views_2_keeps_only_what_two_renders_see():
     assert x_all.min() == pytest.approx(-1.0, abs=0.03) and x_two.min() == pytest.approx(-0.95, abs=0.03)  # the overlap
 
 
+def test_mesh_trunc_voxels_sets_how_far_a_depth_step_is_bridged():
+    """One render of a 10 cm depth step (left half at z = 1.0 m, right half at 1.1 m), 1 cm voxels:
+    behind the foreground's edge the TSDF reaches back as far as its truncation, so the wall the
+    mesh draws down from the edge ends about trunc_voxels voxels behind it (4: 1.04 m, 8: 1.08 m)
+    and the rest of the step stays open."""
+    depth = np.full((60, 80), 1.0, np.float32)
+    depth[:, 40:] = 1.1
+    render = {"color": np.full((60, 80, 3), 0.5, np.float32), "depth": depth,
+              "depth_std": np.full((60, 80), 0.01, np.float32), "opacity": np.ones((60, 80), np.float32)}
+    K = np.asarray(intrinsic(80, 60, 60.0).intrinsic_matrix)
+
+    def wall_bottom(trunc_voxels):
+        v = np.asarray(mesh_from_renders([render], np.eye(4)[None], K, voxel_size=0.01,
+                                         trunc_voxels=trunc_voxels).vertices)
+        wall = v[(np.abs(v[:, 0]) < 0.03) & (v[:, 2] > 1.015) & (v[:, 2] < 1.095)]
+        return wall[:, 2].max()
+
+    assert wall_bottom(4) == pytest.approx(1.04, abs=0.011)
+    assert wall_bottom(8) == pytest.approx(1.08, abs=0.011)
+
+
 def test_uncertainty_colors_map_sigma_to_a_colormap():
     sigma = np.array([0.0, 0.005, 0.01, 1.0])
     c = uncertainty_colors(sigma, vmax=0.01)
