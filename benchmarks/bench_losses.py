@@ -15,8 +15,10 @@ once with `--threads` torch threads each.
 
     python benchmarks/bench_losses.py --datasets fern --steps 14000 --name losses_fern
     python benchmarks/bench_losses.py --datasets fern,tum --seconds 300 --jobs 1 --threads 2 --name losses_300s
-    python benchmarks/bench_losses.py --datasets 7scenes_every10 --split tuning --seconds 300 --seeds 0 \
-        --variants pnerf,photometric,pnerf_fast_decay,pnerf_light_depth,pnerf_wide_targets --name tuning_300s
+    python benchmarks/bench_losses.py --datasets tum,7scenes --variants pnerf,photometric --seconds 300 \
+        --name losses_rgbd_300s
+    python benchmarks/bench_losses.py --datasets 7scenes --seeds 0 --seconds 300 \
+        --variants pnerf,pnerf_fast_decay,pnerf_light_depth,pnerf_wide_targets --name losses_7scenes_levers
     python benchmarks/bench_losses.py --datasets synthetic,tum --steps 3000 --name losses_rgbd
     python benchmarks/bench_losses.py --datasets synthetic --variants pnerf,pnerf_fine_terms --seeds 0,1 \
         --steps 1500 --name tuning_coarse_terms      # a settings choice, on the tuning scene
