@@ -22,10 +22,9 @@ import multiprocessing
 import time
 
 import numpy as np
-from common import commit, load, machine, poses_for, require_shared, run_in_processes, synthetic_room, \
-    write_result
+from common import (TRAIN_VIEWS, commit, load, machine, poses_for, require_shared, run_in_processes, synthetic_room,
+                    write_result)
 
-VIEWS = {"synthetic": 10}  # training views (the others: every frame not held out)
 ROWS = ("mesh", "sensor", "tsdf")
 COLUMNS = [  # label, key, factor, format
     ("holes", "holes", 100, ".2f"), ("depth L1 own hits (mm)", "depth_l1_hits", 1000, ".1f"),
@@ -44,8 +43,8 @@ def run_one(spec: dict) -> dict:
 
     seq, reference = load(spec["source"])
     poses, covs = poses_for(spec["source"], seq)
-    cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, train_views=VIEWS.get(spec["dataset"], 0),
-                                         seed=spec["seed"], progress=False)
+    views = TRAIN_VIEWS.get(spec["dataset"], 0)  # 7scenes_every10: every frame not held out
+    cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, train_views=views, seed=spec["seed"], progress=False)
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     tables, seconds = {}, {}
     for trunc in spec["truncs"]:
@@ -53,7 +52,7 @@ def run_one(spec: dict) -> dict:
         variant = dataclasses.replace(recon, config=recon.config.replace(**{"export.mesh_trunc_voxels": trunc}))
         variant.geometry = export_geometry(variant, seq, progress=False)
         seconds[trunc] = round(time.perf_counter() - t0, 1)
-        table = compare(variant, seq, reference=reference, progress=False).table
+        table = compare(variant, seq, reference=reference, figure_frames=0, progress=False).table
         for row in ROWS:
             table[row]["holes"] = 1 - table[row]["coverage"]
         tables[trunc] = {row: table[row] for row in ROWS}
@@ -65,7 +64,8 @@ def markdown(results: list[dict], meta: dict) -> str:
     lines = [f"`fast` preset, ground-truth poses, every 4th frame held out, 320x240, seeds {meta['seeds']}, "
              f"truncations {meta['truncs']} voxels of 1 cm; at commit {meta['commit']}; {meta['wall_minutes']} min "
              f"in all; {meta['machine']}.", "",
-             "Each cell: the mean over the seeds (min..max). Holes: % of the held-out sensor pixels a method misses.", ""]
+             "Each cell: the mean over the seeds (min..max). Holes: % of the held-out sensor pixels a method "
+             "misses.", ""]
     for d in dict.fromkeys(r["dataset"] for r in results):
         runs = [r for r in results if r["dataset"] == d]
         lines += [f"### {d}, {runs[0]['views']} training views", "",
@@ -76,7 +76,8 @@ def markdown(results: list[dict], meta: dict) -> str:
                 cells = []
                 for _, key, factor, fmt in COLUMNS:
                     values = [factor * r["tables"][trunc][row][key] for r in runs if key in r["tables"][trunc][row]]
-                    cells.append(f"{np.mean(values):{fmt}} ({min(values):{fmt}}..{max(values):{fmt}})" if values else "-")
+                    cells.append(f"{np.mean(values):{fmt}} ({min(values):{fmt}}..{max(values):{fmt}})"
+                                 if values else "-")
                 lines.append(f"| {row} | {trunc} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
@@ -98,8 +99,11 @@ def main():
     sources = {d: synthetic_room() if d == "synthetic" else d for d in datasets}
     specs = [dict(dataset=d, source=sources[d], seed=s, truncs=truncs, threads=args.threads)
              for d in datasets for s in seeds]
-    results = run_in_processes(run_one, specs, args.jobs, lambda r: f"{r['dataset']} seed {r['seed']}: holes " + ", ".join(
-        f"{t:g} voxels {100 * r['tables'][t]['mesh']['holes']:.2f}%" for t in truncs))
+    def progress(r):
+        return f"{r['dataset']} seed {r['seed']}: holes " + ", ".join(
+            f"{t:g} voxels {100 * r['tables'][t]['mesh']['holes']:.2f}%" for t in truncs)
+
+    results = run_in_processes(run_one, specs, args.jobs, progress)
     for r in results:  # JSON keys are strings
         r["tables"] = {f"{t:g}": v for t, v in r["tables"].items()}
     meta = {"machine": machine(), "commit": commit(), "seeds": seeds, "truncs": [f"{t:g}" for t in truncs],

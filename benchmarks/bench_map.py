@@ -37,12 +37,11 @@ import multiprocessing
 import time
 
 import numpy as np
-from common import (OUT, PATHS, commit, exact_surface, load, machine, poses_for, require_shared, run_in_processes,
-                    synthetic_room, write_result)
+from common import (OUT, PATHS, TRAIN_VIEWS, commit, exact_surface, load, machine, poses_for, require_shared,
+                    run_in_processes, synthetic_room, write_result)
 
 from open3d_pnerf.config import overrides as config_overrides
 
-VIEWS = {"synthetic": 10, "synthetic_all": 0, "tum": 0, "7scenes": 0, "tum_10": 10, "7scenes_10": 10}  # training views (0 = all)
 SOURCES = {"tum_10": "tum", "7scenes_10": "7scenes"}  # the sparse variants' recordings
 MESH_ONLY = {"synthetic_all"}  # datasets run with pnerf only (the all-views mesh against the TSDF's)
 COLUMNS = [  # label, key, factor, format
@@ -78,7 +77,7 @@ def run_one(spec: dict) -> dict:
 
     seq, reference = load(spec["source"])
     poses, covs = poses_for(spec["source"], seq)
-    cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=4, train_views=VIEWS[spec["dataset"]],
+    cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=4, train_views=TRAIN_VIEWS[spec["dataset"]],
                                          loss=spec["loss"], seed=spec["seed"], progress=False, **spec["overrides"])
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
     t0 = time.perf_counter()
@@ -301,7 +300,7 @@ def main():
         f"{r['dataset']:14s} {r['loss']:12s} seed {r['seed']} mesh {r['table']['mesh']} "
         f"sensor {r['table'].get('sensor')} tsdf {r['table'].get('tsdf')}"))
     meta = {"machine": machine(), "commit": commit(), "seeds": seeds, "threads": args.threads, "jobs": args.jobs, "preset": args.preset,
-            "overrides": overrides, "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": VIEWS,
+            "overrides": overrides, "wall_minutes": round((time.perf_counter() - t0) / 60, 1), "views": TRAIN_VIEWS,
             "ensemble": args.ensemble}
     write_result(args.name, {"meta": meta, "runs": results}, markdown(results, meta))
 

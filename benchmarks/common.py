@@ -28,6 +28,8 @@ PATHS = {"tum": SHARED / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz",
          "fern": SHARED / "llff_fern" / "nerf_llff_data" / "fern"}
 HOLDOUT_EVERY = {"fern": 8}  # the LLFF protocol; every 4th frame for the RGB-D datasets
 IMAGE_SCALE = {"fern": 1.0}  # 504x378 (images_8, nerf-pytorch's Fern); 320x240 for the RGB-D datasets
+TRAIN_VIEWS = {"synthetic": 10, "synthetic_all": 0, "tum": 0, "7scenes": 0, "tum_10": 10,
+               "7scenes_10": 10}  # the scenes' training views, evenly spaced (0: every frame not held out)
 
 
 def machine() -> str:

@@ -102,10 +102,11 @@ def compare_with_tsdf(sequence: RGBDSequence, config: ReconstructionConfig | Non
     ``PointCloud`` (world frame of the poses) for geometry metrics. voxel_size: TSDF voxel
     (m), truncated as the exported mesh is (export.mesh_trunc_voxels). weight_threshold: the
     TSDF keeps voxels seen by more training frames than this; None = the exported mesh's own
-    threshold (export.mesh_min_views - 0.5), so both keep the same surfaces; Open3D's default (3) is a second, labelled row. Every
-    method is rendered at the held-out poses at the training resolution, against the frames the
-    model was built from (``reconstruction.frames``: tracked frames have their depth moved into
-    their colour cameras, see :func:`resolve_poses`). An image-only sequence (no depth images, e.g.
+    threshold (export.mesh_min_views - 0.5), so both keep the same surfaces; Open3D's default
+    (3) is a second, labelled row. Every method is rendered at the held-out poses at the
+    training resolution, against the frames the model was built from
+    (``reconstruction.frames``: tracked frames have their depth moved into their colour
+    cameras, see :func:`resolve_poses`). An image-only sequence (no depth images, e.g.
     an LLFF folder) has no TSDF to fuse: the model is scored alone (colour metrics). See
     :func:`open3d_pnerf.comparison.compare`.
     """
