@@ -10,8 +10,9 @@ reached (linear between evaluations).
 Datasets (common.py): fern (LLFF, 10 training views, every 8th image held out, COLMAP
 poses and points, 504x378), synthetic (the room, 10 views at ground-truth poses, every 4th
 frame held out, 320x240), tum (TUM fr1/xyz, 10 views at ground-truth poses, every 4th held
-out, 320x240), 7scenes (redkitchen 150-199, the same). Each run is a fresh process, `--jobs` at
-once with `--threads` torch threads each.
+out, 320x240), 7scenes (redkitchen 150-199, the same); `--poses tracked` trains the RGB-D ones
+at the tracker's poses and covariances instead (what refine_poses needs). Each run is a fresh
+process, `--jobs` at once with `--threads` torch threads each.
 
     python benchmarks/bench_losses.py --datasets fern --steps 14000 --name losses_fern
     python benchmarks/bench_losses.py --datasets fern,tum --seconds 300 --jobs 1 --threads 2 --name losses_300s
@@ -19,6 +20,8 @@ once with `--threads` torch threads each.
         --name losses_rgbd_300s
     python benchmarks/bench_losses.py --datasets 7scenes --seeds 0 --seconds 300 \
         --variants pnerf,pnerf_fast_decay,pnerf_light_depth,pnerf_wide_targets --name losses_7scenes_levers
+    python benchmarks/bench_losses.py --datasets 7scenes --poses tracked --seconds 300 \
+        --variants pnerf,photometric,pnerf_refine,photometric_refine --name losses_7scenes_refine
     python benchmarks/bench_losses.py --datasets synthetic,tum --steps 3000 --name losses_rgbd
     python benchmarks/bench_losses.py --datasets synthetic --variants pnerf,pnerf_fine_terms --seeds 0,1 \
         --steps 1500 --name tuning_coarse_terms      # a settings choice, on the tuning scene
@@ -62,6 +65,9 @@ VARIANTS = {  # name -> config overrides
     "pnerf_light_depth": {"loss": "pnerf", "objective.weights.depth_pdf": 0.1, "objective.weights.depth": 0.1},
     "pnerf_fast_decay": {"loss": "pnerf", "objective.depth_weight_final_factor": 0.001},
     "pnerf_wide_targets": {"loss": "pnerf", "targets.depth_sigma_relative": 0.04},  # twice the systematic term
+    # poses refined with the field, held by the tracker's covariances (with --poses tracked)
+    "pnerf_refine": {"loss": "pnerf", "refine_poses": True},
+    "photometric_refine": {"loss": "photometric", "refine_poses": True},
 }
 PRESET = {"fern": "forward_facing"}  # each dataset's preset (the others: "fast")
 PAPER = {"fern": {"pnerf": (25.53, 0.80), "dsnerf": (24.27, 0.74)}}  # the PNeRF paper's Table (PSNR dB, SSIM)
@@ -76,7 +82,7 @@ def run_one(spec: dict) -> dict:
     from open3d_pnerf.evaluation import heldout_scores
 
     seq, _ = load(spec["source"])
-    poses, covs = poses_for(spec["source"], seq)
+    poses, covs = poses_for(spec["source"], seq, spec["poses"])
     d = spec["dataset"]
     budget = dict(max_steps=10**9, time_budget_s=spec["seconds"]) if spec["seconds"] else \
         dict(max_steps=spec["steps"], time_budget_s=None)
@@ -139,7 +145,8 @@ def markdown(results: list[dict], meta: dict, variants: list[str]) -> str:
              "Tuning split: scored on the training pool's frames the sparse views left out, not the held-out ones.")
     budget = (f"{meta['seconds']:g} s of training per run (equal time)" if meta.get("seconds") else
               f"{meta['steps']} steps per run (equal steps)")
-    lines = [f"{budget}, seeds {meta['seeds']}, {meta['threads']} thread(s), "
+    poses = "the tracker's poses and covariances" if meta.get("poses") == "tracked" else "ground-truth poses"
+    lines = [f"{budget}, {poses}, seeds {meta['seeds']}, {meta['threads']} thread(s), "
              f"{meta['jobs']} run(s) at once; {meta['wall_minutes']} min in all; {meta['machine']}. {split}",
              "PSNR/SSIM/depth: full held-out images at the end. Equal time: PSNR of 2,048 fixed held-out pixels "
              "at the time every run of the same dataset and seed had reached.", ""]
@@ -181,6 +188,9 @@ def main():
     ap.add_argument("--split", choices=("report", "tuning"), default="report",
                     help="score the held-out frames (report), or the training pool's frames the --views left out "
                          "(tuning: where settings are chosen, so the held-out frames stay unseen)")
+    ap.add_argument("--poses", choices=("gt", "tracked"), default="gt",
+                    help="train at the ground-truth poses (zero covariance) or at the tracker's, aligned to the "
+                         "ground truth's frame, with its covariances (what refine_poses needs)")
     ap.add_argument("--name", default="losses", help="stem of the result files in benchmarks/results/")
     args = ap.parse_args()
     datasets, variants = args.datasets.split(","), args.variants.split(",")
@@ -193,15 +203,18 @@ def main():
     sources = {d: synthetic_room() if d == "synthetic" else d for d in datasets}
     if args.split == "tuning" and args.views == 0:
         raise SystemExit("--split tuning scores the frames --views leaves out: give --views")
+    if args.poses == "tracked":  # track each sequence once, before the runs share the cached trajectory
+        for d in datasets:
+            poses_for(sources[d], load(sources[d])[0], "tracked")
     specs = [dict(dataset=d, source=sources[d], variant=v, seed=s, views=args.views, steps=args.steps,
-                  seconds=args.seconds, threads=args.threads, split=args.split)
+                  seconds=args.seconds, threads=args.threads, split=args.split, poses=args.poses)
              for d in datasets for s in seeds for v in variants]
     results = run_in_processes(run_one, specs, args.jobs, lambda r: (
         f"{r['dataset']:10s} {r['variant']:22s} seed {r['seed']} PSNR {r['model']['psnr']:.2f} "
         f"SSIM {r['model']['ssim']:.3f} {r['train_s']:.0f} s"))
     add_equal_time(results)
     meta = {"machine": machine(), "commit": commit(),
-            "steps": None if args.seconds else args.steps, "seconds": args.seconds, "seeds": seeds, "views": args.views, "split": args.split, "threads": args.threads,
+            "steps": None if args.seconds else args.steps, "seconds": args.seconds, "seeds": seeds, "views": args.views, "split": args.split, "threads": args.threads, "poses": args.poses,
             "jobs": args.jobs,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
             "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets},
