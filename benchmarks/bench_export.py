@@ -42,7 +42,7 @@ def run_one(spec: dict) -> dict:
     from open3d_pnerf.export import export_geometry
 
     seq, reference = load(spec["source"])
-    poses, covs = poses_for(spec["source"], seq)
+    seq, poses, covs = poses_for(spec["source"], seq)
     views = TRAIN_VIEWS.get(spec["dataset"], 0)  # 7scenes_every10: every frame not held out
     cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, train_views=views, seed=spec["seed"], progress=False)
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)

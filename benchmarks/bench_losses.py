@@ -82,7 +82,7 @@ def run_one(spec: dict) -> dict:
     from open3d_pnerf.evaluation import heldout_scores
 
     seq, _ = load(spec["source"])
-    poses, covs = poses_for(spec["source"], seq, spec["poses"])
+    seq, poses, covs = poses_for(spec["source"], seq, spec["poses"])
     d = spec["dataset"]
     budget = dict(max_steps=10**9, time_budget_s=spec["seconds"]) if spec["seconds"] else \
         dict(max_steps=spec["steps"], time_budget_s=None)

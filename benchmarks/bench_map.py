@@ -76,7 +76,7 @@ def run_one(spec: dict) -> dict:
     from open3d_pnerf.metrics import geometry_metrics
 
     seq, reference = load(spec["source"])
-    poses, covs = poses_for(spec["source"], seq)
+    seq, poses, covs = poses_for(spec["source"], seq)
     cfg = pn.ReconstructionConfig.preset(spec["preset"], holdout_every=4, train_views=TRAIN_VIEWS[spec["dataset"]],
                                          loss=spec["loss"], seed=spec["seed"], progress=False, **spec["overrides"])
     recon = pn.reconstruct(seq, cfg, poses=poses, covariances=covs)

@@ -43,7 +43,7 @@ def train(dataset: str, seed: int):
     import open3d_pnerf as pn
 
     seq, _ = load(dataset)
-    poses, covs = poses_for(dataset, seq)
+    seq, poses, covs = poses_for(dataset, seq)
     cfg = pn.ReconstructionConfig.preset("fast", holdout_every=4, seed=seed, progress=False)
     return seq, pn.reconstruct(seq, cfg, poses=poses, covariances=covs)
 

@@ -118,23 +118,30 @@ def exact_surface(dataset: str):
 
 
 def poses_for(dataset: str, seq, kind: str = "gt"):
-    """(poses, covariances) to train on: the ground truth's with zero covariance ("gt"), or tracked
-    ("tracked": once per dataset, cached) and aligned to the ground truth's world frame (so geometry
-    metrics use the exact mesh's frame); (None, None) for an image-only sequence (its SfM poses)."""
+    """(sequence, poses, covariances) to train on: the ground truth's poses with zero covariance
+    ("gt"), or the tracker's as reconstruct() trains on them ("tracked": tracked once per dataset,
+    cached, aligned to the ground truth's world frame so geometry metrics use the exact mesh's
+    frame; where the tracker placed colour cameras, their poses, with each depth image moved into
+    its colour camera); (sequence, None, None) for an image-only sequence (its SfM poses)."""
     if not seq.has_depth:
-        return None, None
+        return seq, None, None
     if kind == "gt":
-        return seq.gt_poses, np.zeros((len(seq), 6, 6))
+        return seq, seq.gt_poses, np.zeros((len(seq), 6, 6))
     file = CACHE / f"tracked_{dataset}.npz"
     if not file.is_file():
         import open3d_pnerf as pn
 
         traj = pn.track(seq, progress=False)
         ate = pn.absolute_trajectory_error(traj.poses, seq.gt_poses)
+        offsets = {} if traj.color_offsets is None else {"color_offsets": traj.color_offsets}
         CACHE.mkdir(parents=True, exist_ok=True)
-        np.savez(file, poses=ate["alignment"] @ traj.poses, covariances=traj.covariances, ate=ate["rmse"])
+        np.savez(file, poses=ate["alignment"] @ traj.poses, covariances=traj.covariances, ate=ate["rmse"], **offsets)
     z = np.load(file)
-    return z["poses"], z["covariances"]
+    if "color_offsets" not in z:
+        return seq, z["poses"], z["covariances"]
+    from open3d_pnerf.data.derived import depth_in_color_cameras
+
+    return depth_in_color_cameras(seq, z["color_offsets"]), z["poses"] @ z["color_offsets"], z["covariances"]
 
 
 # -- an earlier revision beside today's -------------------------------------------------------------

@@ -59,7 +59,7 @@ def resolve_poses(sequence: RGBDSequence, config: ReconstructionConfig, poses=No
     config's tracking settings. Tracked frames whose colour cameras were placed
     (Trajectory.color_offsets) come back as those cameras see them: the colour images' poses, and
     the sequence with each depth image moved into its colour camera
-    (:func:`~open3d_pnerf.data.sequence.depth_in_color_cameras`); otherwise the sequence is returned
+    (:func:`~open3d_pnerf.data.derived.depth_in_color_cameras`); otherwise the sequence is returned
     as it is. Tracked poses are kept in the folder `cache` (when `write`) and taken from it when
     `reuse` (a resumed run keeps the poses it trained on). tracking: {"tracked": bool, and when
     tracked on a sequence with ground truth "ate_rmse_m" (of the depth cameras)}."""
