@@ -22,6 +22,10 @@ process, `--jobs` at once with `--threads` torch threads each.
         --variants pnerf,pnerf_fast_decay,pnerf_light_depth,pnerf_wide_targets --name losses_7scenes_levers
     python benchmarks/bench_losses.py --datasets 7scenes --poses tracked --seconds 300 \
         --variants pnerf,photometric,pnerf_refine,photometric_refine --name losses_7scenes_refine
+    python benchmarks/bench_losses.py --datasets tum --poses tracked --seconds 300 --seeds 0 \
+        --variants pnerf_wide_targets,pnerf_light_depth --name losses_tum_tracked_levers
+    python benchmarks/bench_losses.py --datasets tum --poses tracked --seconds 300 --seeds 0,1 --split tuning \
+        --variants pnerf,pnerf_wide_targets,pnerf_wider_targets --name tuning_sigma_relative_tum
     python benchmarks/bench_losses.py --datasets synthetic,tum --steps 3000 --name losses_rgbd
     python benchmarks/bench_losses.py --datasets synthetic --variants pnerf,pnerf_fine_terms --seeds 0,1 \
         --steps 1500 --name tuning_coarse_terms      # a settings choice, on the tuning scene
@@ -65,6 +69,7 @@ VARIANTS = {  # name -> config overrides
     "pnerf_light_depth": {"loss": "pnerf", "objective.weights.depth_pdf": 0.1, "objective.weights.depth": 0.1},
     "pnerf_fast_decay": {"loss": "pnerf", "objective.depth_weight_final_factor": 0.001},
     "pnerf_wide_targets": {"loss": "pnerf", "targets.depth_sigma_relative": 0.04},  # twice the systematic term
+    "pnerf_wider_targets": {"loss": "pnerf", "targets.depth_sigma_relative": 0.08},
     # poses refined with the field, held by the tracker's covariances (with --poses tracked)
     "pnerf_refine": {"loss": "pnerf", "refine_poses": True},
     "photometric_refine": {"loss": "photometric", "refine_poses": True},
