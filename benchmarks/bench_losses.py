@@ -26,6 +26,8 @@ process, `--jobs` at once with `--threads` torch threads each.
         --variants pnerf_wide_targets,pnerf_light_depth --name losses_tum_tracked_levers
     python benchmarks/bench_losses.py --datasets tum --poses tracked --seconds 300 --seeds 0,1 --split tuning \
         --variants pnerf,pnerf_wide_targets,pnerf_wider_targets --name tuning_sigma_relative_tum
+    python benchmarks/bench_losses.py --datasets tum,7scenes --poses tracked --seconds 300 \
+        --variants pnerf,pnerf_wide_targets --name losses_wide_targets_tracked
     python benchmarks/bench_losses.py --datasets synthetic,tum --steps 3000 --name losses_rgbd
     python benchmarks/bench_losses.py --datasets synthetic --variants pnerf,pnerf_fine_terms --seeds 0,1 \
         --steps 1500 --name tuning_coarse_terms      # a settings choice, on the tuning scene
