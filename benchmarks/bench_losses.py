@@ -11,8 +11,9 @@ Datasets (common.py): fern (LLFF, 10 training views, every 8th image held out, C
 poses and points, 504x378), synthetic (the room, 10 views at ground-truth poses, every 4th
 frame held out, 320x240), tum (TUM fr1/xyz, 10 views at ground-truth poses, every 4th held
 out, 320x240), 7scenes (redkitchen 150-199, the same); `--poses tracked` trains the RGB-D ones
-at the tracker's poses and covariances instead (what refine_poses needs). Each run is a fresh
-process, `--jobs` at once with `--threads` torch threads each.
+at the tracker's poses and covariances instead, as reconstruct() trains on them (its colour
+cameras where it places them; what refine_poses needs). Each run is a fresh process, `--jobs` at
+once with `--threads` torch threads each.
 
     python benchmarks/bench_losses.py --datasets fern --steps 14000 --name losses_fern
     python benchmarks/bench_losses.py --datasets fern,tum --seconds 300 --jobs 1 --threads 2 --name losses_300s
@@ -196,8 +197,9 @@ def main():
                     help="score the held-out frames (report), or the training pool's frames the --views left out "
                          "(tuning: where settings are chosen, so the held-out frames stay unseen)")
     ap.add_argument("--poses", choices=("gt", "tracked"), default="gt",
-                    help="train at the ground-truth poses (zero covariance) or at the tracker's, aligned to the "
-                         "ground truth's frame, with its covariances (what refine_poses needs)")
+                    help="train at the ground-truth poses (zero covariance) or at the tracker's as reconstruct() "
+                         "trains on them (its colour cameras where it places them), aligned to the ground truth's "
+                         "frame, with its covariances (what refine_poses needs)")
     ap.add_argument("--name", default="losses", help="stem of the result files in benchmarks/results/")
     args = ap.parse_args()
     datasets, variants = args.datasets.split(","), args.variants.split(",")
@@ -221,8 +223,8 @@ def main():
         f"SSIM {r['model']['ssim']:.3f} {r['train_s']:.0f} s"))
     add_equal_time(results)
     meta = {"machine": machine(), "commit": commit(),
-            "steps": None if args.seconds else args.steps, "seconds": args.seconds, "seeds": seeds, "views": args.views, "split": args.split, "threads": args.threads, "poses": args.poses,
-            "jobs": args.jobs,
+            "steps": None if args.seconds else args.steps, "seconds": args.seconds, "seeds": seeds,
+            "views": args.views, "split": args.split, "poses": args.poses, "threads": args.threads, "jobs": args.jobs,
             "wall_minutes": round((time.perf_counter() - t0) / 60, 1),
             "holdout_every": {d: HOLDOUT_EVERY.get(d, 4) for d in datasets},
             "preset": {d: PRESET.get(d, "fast") for d in datasets},
