@@ -8,8 +8,7 @@ own hits and on the pixels every method covers, its colour there, and against th
 exact surface, accuracy and completeness. Datasets as bench_map.py's, and 7scenes_every10 (redkitchen,
 every 10th frame of 0-990: the same kitchen, other views), where the default is chosen.
 
-    python benchmarks/bench_export.py --datasets 7scenes_every10 --seeds 0 --name export_tuning
-    python benchmarks/bench_export.py --datasets tum,7scenes,synthetic --seeds 0,1 --name export_trunc
+    python benchmarks/bench_export.py --datasets 7scenes_every10,tum,7scenes,synthetic --seeds 0,1 --name export_trunc
 
 Writes benchmarks/results/<name>.json and <name>.md.
 """
@@ -99,6 +98,7 @@ def main():
     sources = {d: synthetic_room() if d == "synthetic" else d for d in datasets}
     specs = [dict(dataset=d, source=sources[d], seed=s, truncs=truncs, threads=args.threads)
              for d in datasets for s in seeds]
+
     def progress(r):
         return f"{r['dataset']} seed {r['seed']}: holes " + ", ".join(
             f"{t:g} voxels {100 * r['tables'][t]['mesh']['holes']:.2f}%" for t in truncs)
