@@ -29,6 +29,7 @@ from .data.derived import evenly_spaced
 from .data.sequence import RGBDSequence, check_sequence
 from .fusion import fuse_render_with_sensor
 from .settings import FLAG, Settings, count, number, setting
+from .targets.noise import SensorNoise
 from .tsdf import TSDFVolume, level_set_mesh
 
 
@@ -62,6 +63,14 @@ class ExportConfig(Settings):
     """Exported points whose rendered depth std exceeds this (m) are dropped."""
     min_opacity: float = setting(0.9, number(0, 1))
     """Exported points/mesh depth need at least this accumulated opacity."""
+    depth_sigma_relative: float = setting(SensorNoise.relative, number(0, 1, high_open=True))
+    """Systematic depth error of the sensor as a fraction of depth, in the exported sigma: added in
+    quadrature wherever the sensor's depth is fused (the depth targets' own term,
+    targets.depth_sigma_relative, is a training choice and wider)."""
+
+    def sensor_noise(self) -> SensorNoise:
+        """The sensor's noise model the export fuses with: random noise and this systematic term."""
+        return SensorNoise(relative=self.depth_sigma_relative)
 
 
 def point_cloud_from_renders(renders: list[dict], poses, K, min_opacity=0.9, max_std=0.05, voxel_size=0.005,
@@ -241,7 +250,7 @@ def export_views(recon, sequence: RGBDSequence | None = None, config: ExportConf
     rendered depth is fused per pixel with the sensor's depth at the training resolution (the
     render brought to it by nearest pixel) by :func:`~open3d_pnerf.fusion.fuse_render_with_sensor`,
     with the sensor's random sigma (:class:`~open3d_pnerf.targets.SensorNoise`); its systematic
-    part (targets.depth_sigma_relative) is common to both, the model having learned from this
+    part (config.depth_sigma_relative) is common to both, the model having learned from this
     sensor, so it is added to the fused variance afterwards: observed surfaces keep the sensor's
     accuracy, the others come from the model, each with its fused sigma. The colour of a fused
     view is its training image's (registered to the depth, divided by the frame's colour gains to
@@ -256,7 +265,7 @@ def export_views(recon, sequence: RGBDSequence | None = None, config: ExportConf
     renders = [recon.render(p, intr) for p in tqdm(poses, desc="export renders", disable=not progress, leave=False)]
     if views is None:
         return ExportViews(poses, intrinsic_matrix(intr), renders, fused=False)
-    noise = recon.config.targets.sensor_noise()
+    noise = cfg.sensor_noise()
     for k, r in enumerate(renders):
         z = _inside_box(views[k].depth, views.K, poses[k], recon.aabb)
         # the model learned from this sensor, so its systematic error is common to both: fuse the
@@ -298,7 +307,7 @@ def sensor_geometry(recon, sequence: RGBDSequence, config: ExportConfig | None =
     check_sequence(sequence, len(recon.poses), "sensor_geometry(): sequence", needs_depth=True)
     frames, views = _export_views(recon, sequence, cfg)
     poses = recon.poses[frames]
-    noise, renders = recon.config.targets.sensor_noise(), []
+    noise, renders = cfg.sensor_noise(), []
     for k, pose in enumerate(poses):
         frame = views[k]
         z = _inside_box(frame.depth, views.K, pose, recon.aabb)

@@ -30,6 +30,7 @@ from open3d_pnerf.export import (
     point_cloud_from_renders,
     read_mesh_ply,
     read_point_cloud_ply,
+    sensor_geometry,
     uncertainty_colors,
     write_mesh_ply,
     write_point_cloud_ply,
@@ -455,7 +456,7 @@ def test_reconstruct_returns_a_complete_reconstruction(recon, sample):
     assert np.isfinite(recon.point_sigma).all() and (recon.point_sigma >= 0).all()
     # fused with the sensor: the model's depth counts up to max_point_std, the sensor's with its own
     # sigma, and both carry the sensor's systematic part
-    noise, z_max = recon.config.targets.sensor_noise(), float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))
+    noise, z_max = recon.config.export.sensor_noise(), float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))
     bound = np.hypot(max(recon.config.export.max_point_std, noise.sigma(z_max)), noise.relative * z_max)
     assert recon.point_sigma.max() <= bound + 1e-6
     pts = np.asarray(recon.point_cloud.points)
@@ -465,6 +466,22 @@ def test_reconstruct_returns_a_complete_reconstruction(recon, sample):
     assert stats["history"][-1]["step"] == TRAIN_STEPS and "eval_psnr" in stats["history"][-1]
     assert {"tracking_s", "targets_s", "export_s", "total_s"} <= set(stats["timings"])
     assert "Reconstruction(11 frames, 8 trained" in repr(recon)
+
+
+@pytest.mark.slow
+def test_exported_sigma_takes_the_sensors_systematic_term_not_the_targets(recon, sample):
+    """The targets' systematic term (4%) is a training choice; the exported sigma carries the
+    sensor's (export.depth_sigma_relative, 2%): without it, only the random part is left."""
+    assert recon.config.targets.depth_sigma_relative == 0.04 and recon.config.export.depth_sigma_relative == 0.02
+    def sorted_sigma(config=None):  # the points' order is not fixed; the same points are
+        return np.sort(sensor_geometry(recon, sample, config).point_sigma)
+
+    export = recon.config.export
+    sigma = {r: sorted_sigma(dataclasses.replace(export, depth_sigma_relative=r)) for r in (0.0, 0.02, 0.04)}
+    np.testing.assert_array_equal(sorted_sigma(), sigma[0.02])
+    assert (sigma[0.04] > sigma[0.02]).all() and (sigma[0.02] > sigma[0.0]).all()
+    z_max = float(np.linalg.norm(recon.aabb[1] - recon.aabb[0]))
+    assert sigma[0.0].max() <= export.sensor_noise().sigma(z_max)
 
 
 @pytest.mark.slow

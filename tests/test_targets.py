@@ -15,7 +15,7 @@ import pytest
 
 from open3d_pnerf.camera import ray_norms
 from open3d_pnerf.errors import InputError, PoseError
-from open3d_pnerf.targets import DepthTargets, SensorNoise, depth_targets
+from open3d_pnerf.targets import DepthTargets, SensorNoise, TargetsConfig, depth_targets
 
 Z0 = 2.0
 CENTRE = (24, 32)  # (row, col) of the principal point
@@ -48,6 +48,9 @@ def test_systematic_error_is_added_after_fusion(plane_scene):
     np.testing.assert_allclose(t.mean, Z0, atol=1e-4)  # the mean does not move
     default = depth_targets(seq, poses=poses, progress=False)  # SensorNoise() has relative = 0.02
     np.testing.assert_allclose(default.sigma, np.sqrt(S**2 / support + (0.02 * Z0) ** 2), rtol=1e-5)
+    # a reconstruction's targets are twice as wide in that term (TargetsConfig, a training choice)
+    wide = TargetsConfig().build(seq, poses, np.zeros((len(poses), 6, 6)), progress=False)
+    np.testing.assert_allclose(wide.sigma, np.sqrt(S**2 / support + (0.04 * Z0) ** 2), rtol=1e-5)
 
 
 def test_ray_norms():
