@@ -21,15 +21,17 @@ once with `--threads` torch threads each.
         --name losses_rgbd_300s
     python benchmarks/bench_losses.py --datasets 7scenes --seeds 0 --seconds 300 \
         --variants pnerf_sensor_targets,pnerf_fast_decay,pnerf_light_depth,pnerf --name losses_7scenes_levers
+        # the file ran at d516ff0, when every variant but the 4% one had 2% targets
     python benchmarks/bench_losses.py --datasets 7scenes --poses tracked --seconds 300 \
         --variants pnerf,photometric,pnerf_refine,photometric_refine --name losses_7scenes_refine
     python benchmarks/bench_losses.py --datasets tum --poses tracked --seconds 300 --seeds 0 \
-        --variants pnerf,pnerf_light_depth --name losses_tum_tracked_levers
+        --variants pnerf,pnerf_light_depth --name losses_tum_tracked_levers  # ran at d78a31a: light depth at 2%
     python benchmarks/bench_losses.py --datasets tum --poses tracked --seconds 300 --seeds 0,1 --split tuning \
         --variants pnerf_sensor_targets,pnerf,pnerf_wider_targets --name tuning_sigma_relative_tum
     python benchmarks/bench_losses.py --datasets tum,7scenes --poses tracked --seconds 300 \
         --variants pnerf_sensor_targets,pnerf --name losses_wide_targets_tracked
-    python benchmarks/bench_losses.py --datasets tum,7scenes --variants pnerf --seconds 300 --name losses_rgbd_300s_pnerf
+    python benchmarks/bench_losses.py --datasets tum,7scenes --variants pnerf --seconds 300 \
+        --name losses_rgbd_300s_pnerf
     python benchmarks/bench_losses.py --datasets synthetic,tum --steps 3000 --name losses_rgbd
     python benchmarks/bench_losses.py --datasets synthetic --variants pnerf,pnerf_fine_terms --seeds 0,1 \
         --steps 1500 --name tuning_coarse_terms      # a settings choice, on the tuning scene
