@@ -213,6 +213,9 @@ def main():
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise SystemExit(f"unknown variants {unknown}; expected some of {list(VARIANTS)}")
+    refining = [v for v in variants if VARIANTS[v].get("refine_poses")]
+    if refining and args.poses == "gt":  # zero covariances hold every pose still: the runs would be plain ones
+        raise SystemExit(f"--variants {refining} refine the poses within their covariances: give --poses tracked")
     require_shared(*datasets)
     t0 = time.perf_counter()
     sources = {d: synthetic_room() if d == "synthetic" else d for d in datasets}
