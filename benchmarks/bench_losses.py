@@ -32,6 +32,8 @@ once with `--threads` torch threads each.
         --variants pnerf_sensor_targets,pnerf --name losses_wide_targets_tracked
     python benchmarks/bench_losses.py --datasets tum,7scenes --variants pnerf --seconds 300 \
         --name losses_rgbd_300s_pnerf
+    python benchmarks/bench_losses.py --datasets tum --variants pnerf,photometric --seconds 300 \
+        --name losses_tum_300s_paired
     python benchmarks/bench_losses.py --datasets synthetic,tum --steps 3000 --name losses_rgbd
     python benchmarks/bench_losses.py --datasets synthetic --variants pnerf,pnerf_fine_terms --seeds 0,1 \
         --steps 1500 --name tuning_coarse_terms      # a settings choice, on the tuning scene

@@ -473,6 +473,7 @@ def test_exported_sigma_takes_the_sensors_systematic_term_not_the_targets(recon,
     """The targets' systematic term (4%) is a training choice; the exported sigma carries the
     sensor's (export.depth_sigma_relative, 2%): without it, only the random part is left."""
     assert recon.config.targets.depth_sigma_relative == 0.04 and recon.config.export.depth_sigma_relative == 0.02
+
     def sorted_sigma(config=None):  # the points' order is not fixed; the same points are
         return np.sort(sensor_geometry(recon, sample, config).point_sigma)
 
